@@ -1,0 +1,25 @@
+"""Scene data: the procedural benchmark, the padded SceneSet, expert tables.
+
+Notebook API::
+
+    from orgnav_jax import scenes
+    s = scenes.build("small", seed=0)      # SceneSet of numpy arrays
+    scenes.save(s, "data/small")
+    s = scenes.load("data/small")
+    train = s.split_view("train")
+"""
+
+from orgnav_jax.scenes.builder import build
+from orgnav_jax.scenes.expert import expert_tables
+from orgnav_jax.scenes.features import decode_appearance, decode_global, gather_features
+from orgnav_jax.scenes.layout import Room, generate_room, render_ascii
+from orgnav_jax.scenes.presets import PRESETS, ScenePreset, get_preset
+from orgnav_jax.scenes.sceneset import NO_ACTION, UNREACHABLE, SceneSet
+from orgnav_jax.scenes.storage import disk_size, load, save
+from orgnav_jax.scenes.cache import load_or_build
+
+__all__ = [
+    "build", "load", "save", "load_or_build", "disk_size", "SceneSet", "ScenePreset",
+    "PRESETS", "get_preset", "expert_tables", "generate_room", "render_ascii", "Room",
+    "decode_global", "decode_appearance", "gather_features", "UNREACHABLE", "NO_ACTION",
+]

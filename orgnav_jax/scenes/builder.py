@@ -1,0 +1,131 @@
+"""Build a SceneSet from a preset and a seed: rooms -> observations -> padded arrays ->
+expert tables."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from orgnav_jax.constants import (
+    NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPE_INDEX, SPLIT_INDEX,
+)
+from orgnav_jax.scenes import detector, geometry, global_view
+from orgnav_jax.scenes.expert import expert_tables
+from orgnav_jax.scenes.layout import Room, generate_room
+from orgnav_jax.scenes.presets import ScenePreset, get_preset
+from orgnav_jax.scenes.sceneset import NO_ACTION, UNREACHABLE, SceneSet
+
+FORMAT_NAME = "orgnav_jax.sceneset"
+FORMAT_VERSION = 1
+STORE_DTYPE = np.float16
+EXPERT_CHUNK = 8  # rooms per expert-table call (bounds memory; one compile)
+
+
+@dataclasses.dataclass
+class RoomArrays:
+    """Per-room arrays before padding; S = 16 * reachable cells."""
+    floorplan: int
+    room_type: int
+    split: int
+    next_state: np.ndarray   # (S, A)
+    pose: np.ndarray         # (S, 4)
+    visible: np.ndarray      # (S, C)
+    present: np.ndarray      # (C,)
+    det_box: np.ndarray      # (S, C, 4)
+    det_conf: np.ndarray     # (S, C)
+    appearance: np.ndarray   # (S, C, Da)
+    global_feat: np.ndarray  # (S, 7, 7, Dg)
+
+
+def room_arrays(seed: int, floorplan: int, split: str, room: Room | None = None) -> RoomArrays:
+    """Everything precomputed for one room (pure function of seed and floorplan)."""
+    room = room if room is not None else generate_room(seed, floorplan)
+    cells = geometry.reachable_cells(room.reachable)
+    poses = geometry.state_poses(cells)
+    los = geometry.line_of_sight(room.block_height, cells, room.obj_center, room.obj_size,
+                                 detector.MAX_DETECT_DISTANCE)
+    seen, dist, _ = geometry.object_visibility(poses, cells, los, room.obj_center)
+    boxes = detector.project_boxes(poses, room.obj_center, room.obj_size, room.obj_height)
+    det_rng = np.random.default_rng([seed, floorplan, 1])
+    det_box, det_conf, app_code = detector.detect(det_rng, seen, dist, boxes, room.obj_category)
+    present = np.zeros(NUM_CATEGORIES, bool)
+    present[room.obj_category] = True
+    return RoomArrays(
+        floorplan=floorplan, room_type=ROOM_TYPE_INDEX[room.room_type],
+        split=SPLIT_INDEX[split],
+        next_state=geometry.transitions(cells, room.wall.shape), pose=poses,
+        visible=geometry.category_visible(seen, dist, room.obj_category, NUM_CATEGORIES),
+        present=present, det_box=det_box, det_conf=det_conf, appearance=app_code,
+        global_feat=global_view.global_codes(room, cells),
+    )
+
+
+def feature_bases(preset: ScenePreset) -> dict[str, np.ndarray]:
+    """Fixed projections for the preset's widths (the same for every scene seed, like a
+    pretrained backbone): class prototypes (C, d), noise basis (Da, d), global (Dg, G)."""
+    rng = np.random.default_rng([preset.global_dim, preset.appearance_dim, 2020])
+    d, G = preset.appearance_dim, preset.global_dim
+    da, dg = detector.APPEARANCE_CODE_DIM, global_view.GLOBAL_CODE_DIM
+    return {
+        "appearance_proto": rng.normal(0.3, 1.0, (NUM_CATEGORIES, d)).astype(np.float32),
+        "appearance_basis": (rng.normal(0, 1, (da, d)) * 0.8 / np.sqrt(da)).astype(np.float32),
+        "global_basis": (rng.normal(0, 1, (dg, G)) * 2 / np.sqrt(dg)).astype(np.float32),
+    }
+
+
+def stack_rooms(rooms: list[RoomArrays], **extra) -> SceneSet:
+    """Pad rooms to a common S and stack them; computes the expert tables."""
+    N, S = len(rooms), max(len(r.pose) for r in rooms)
+    C = NUM_CATEGORIES
+    next_state = np.tile(np.arange(S, dtype=np.int32)[None, :, None], (N, 1, NUM_ACTIONS))
+    valid = np.zeros((N, S), bool)
+    fields = {
+        "pose": np.zeros((N, S, 4), np.float32),
+        "visible": np.zeros((N, S, C), bool),
+        "det_box": np.zeros((N, S, C, 4), STORE_DTYPE),
+        "det_conf": np.zeros((N, S, C), STORE_DTYPE),
+        "appearance": np.zeros((N, S, C) + rooms[0].appearance.shape[2:], STORE_DTYPE),
+        "global_feat": np.zeros((N, S) + rooms[0].global_feat.shape[1:], STORE_DTYPE),
+    }
+    for n, r in enumerate(rooms):
+        s = len(r.pose)
+        next_state[n, :s] = r.next_state
+        valid[n, :s] = True
+        for name, arr in fields.items():
+            arr[n, :s] = getattr(r, name)
+    dist = np.full((N, S, C), UNREACHABLE, np.int32)
+    action = np.full((N, S, C), NO_ACTION, np.int32)
+    for lo in range(0, N, EXPERT_CHUNK):
+        hi = min(lo + EXPERT_CHUNK, N)
+        idx = np.arange(lo, lo + EXPERT_CHUNK) % N  # pad the last chunk: one compile
+        d, a = expert_tables(jnp.asarray(next_state[idx]), jnp.asarray(fields["visible"][idx]),
+                             jnp.asarray(valid[idx]))
+        dist[lo:hi], action[lo:hi] = np.asarray(d)[:hi - lo], np.asarray(a)[:hi - lo]
+    return SceneSet(
+        next_state=next_state, state_valid=valid, dist=dist, expert_action=action,
+        present=np.stack([r.present for r in rooms]),
+        room_type=np.array([r.room_type for r in rooms], np.int32),
+        scene_id=np.array([r.floorplan for r in rooms], np.int32),
+        split=np.array([r.split for r in rooms], np.int32),
+        **fields, **extra,
+    )
+
+
+def build(preset: str | ScenePreset = "small", seed: int = 0, *, progress: bool = False,
+          **overrides) -> SceneSet:
+    """Generate the synthetic benchmark: a SceneSet of numpy arrays.
+
+    preset: 'small', 'paper', 'tiny' or a ScenePreset; overrides replace preset fields
+    (e.g. rooms_per_type=(4, 1, 1)). The same (preset, seed) gives identical arrays.
+    """
+    p = get_preset(preset, **overrides)
+    plans = p.floorplans()
+    rooms = [room_arrays(seed, fp, split)
+             for fp, _, split in tqdm(plans, desc=f"rooms ({p.name})", disable=not progress,
+                                      unit="room")]
+    info = (("format", FORMAT_NAME), ("version", FORMAT_VERSION), ("preset", p.name),
+            ("seed", int(seed)), ("rooms_per_type", tuple(p.rooms_per_type)))
+    return stack_rooms(rooms, info=info, **{k: v for k, v in feature_bases(p).items()})

@@ -1,0 +1,26 @@
+"""Reuse a built benchmark across runs: build once per (preset, seed), then load."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from orgnav_jax.scenes.builder import build
+from orgnav_jax.scenes.sceneset import SceneSet
+from orgnav_jax.scenes.storage import META_FILE, load, save
+
+
+def default_cache_dir() -> Path:
+    """$ORGNAV_CACHE, else ~/.cache/orgnav_jax."""
+    return Path(os.environ.get("ORGNAV_CACHE", Path.home() / ".cache" / "orgnav_jax"))
+
+
+def load_or_build(preset: str = "small", seed: int = 0, cache_dir: str | os.PathLike | None = None,
+                  progress: bool = True) -> SceneSet:
+    """The cached SceneSet for (preset, seed), built and saved on first use."""
+    path = Path(cache_dir or default_cache_dir()) / f"scenes-{preset}-seed{seed}"
+    if (path / META_FILE).exists():
+        return load(path)
+    scenes = build(preset, seed, progress=progress)
+    save(scenes, path)
+    return scenes

@@ -1,0 +1,122 @@
+"""Save and load a SceneSet: a directory with `meta.json` and one `.npy` per field.
+
+Saving is atomic (written beside the target, then renamed over it), so an interrupted
+save never leaves a half-written set where a good one was. Loading checks the format
+name, version, every field's presence, shape and dtype, and names what is wrong.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from orgnav_jax.scenes.builder import FORMAT_NAME, FORMAT_VERSION
+from orgnav_jax.scenes.sceneset import SceneSet
+
+META_FILE = "meta.json"
+_OPTIONAL = ("appearance_proto", "appearance_basis", "global_basis")
+
+
+def _array_fields() -> list[str]:
+    return [f.name for f in dataclasses.fields(SceneSet) if f.name != "info"]
+
+
+def save(scenes: SceneSet, path: str | os.PathLike) -> Path:
+    """Write `scenes` to directory `path` (replaced atomically). Returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        fields = {}
+        for name in _array_fields():
+            value = getattr(scenes, name)
+            if value is None:
+                continue
+            arr = np.asarray(value)
+            np.save(tmp / f"{name}.npy", arr, allow_pickle=False)
+            fields[name] = {"shape": list(arr.shape), "dtype": str(arr.dtype)}
+        info = dict(scenes.info)
+        meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION,
+                "info": {k: list(v) if isinstance(v, tuple) else v for k, v in info.items()},
+                "fields": fields}
+        (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
+        old = None
+        if path.exists():
+            old = path.with_name(f".{path.name}.old")
+            if old.exists():
+                shutil.rmtree(old)
+            path.rename(old)
+        tmp.rename(path)
+        if old is not None:
+            shutil.rmtree(old)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path
+
+
+def load(path: str | os.PathLike, mmap: bool = False) -> SceneSet:
+    """Read a SceneSet saved by `save` (numpy arrays; memory-mapped if mmap=True).
+
+    Raises FileNotFoundError / ValueError naming the file or field when `path` is not a
+    SceneSet directory, is from another format version, or is truncated.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no SceneSet at {path}: the path does not exist")
+    if path.is_file():
+        if path.name == META_FILE:
+            path = path.parent
+        else:
+            raise ValueError(f"{path} is a file, expected a SceneSet directory holding "
+                             f"{META_FILE} and one .npy per field (made by scenes.save or "
+                             "'python -m orgnav_jax.scenes build')")
+    meta_path = path / META_FILE
+    if not meta_path.exists():
+        raise ValueError(f"{path} is not a SceneSet directory: {META_FILE} is missing")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{meta_path} is not valid JSON ({e}): not a SceneSet") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
+        got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise ValueError(f"{meta_path}: format is {got!r}, expected {FORMAT_NAME!r}")
+    if meta.get("version") != FORMAT_VERSION:
+        raise ValueError(f"{meta_path}: format version {meta.get('version')!r}, this "
+                         f"orgnav_jax reads version {FORMAT_VERSION}; rebuild the scenes")
+    fields = meta.get("fields", {})
+    arrays = {}
+    for name in _array_fields():
+        if name not in fields:
+            if name in _OPTIONAL:
+                continue
+            raise ValueError(f"{meta_path}: field {name!r} is missing")
+        file = path / f"{name}.npy"
+        if not file.exists():
+            raise ValueError(f"{path}: file {file.name} for field {name!r} is missing")
+        try:
+            arr = np.load(file, mmap_mode="r" if mmap else None, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as e:
+            raise ValueError(f"{file}: cannot read field {name!r} ({e}); the file is "
+                             "truncated or not a .npy array") from None
+        want = fields[name]
+        if list(arr.shape) != want["shape"] or str(arr.dtype) != want["dtype"]:
+            raise ValueError(f"{file}: field {name!r} has shape {arr.shape} dtype {arr.dtype}, "
+                             f"meta.json says {tuple(want['shape'])} {want['dtype']}")
+        arrays[name] = arr
+    info = tuple((k, tuple(v) if isinstance(v, list) else v)
+                 for k, v in meta.get("info", {}).items())
+    scenes = SceneSet(**arrays, info=info)
+    scenes.validate(str(path))
+    return scenes
+
+
+def disk_size(path: str | os.PathLike) -> int:
+    """Bytes used by a saved SceneSet directory."""
+    return sum(f.stat().st_size for f in Path(path).iterdir() if f.is_file())
