@@ -96,8 +96,8 @@ def stack_rooms(rooms: list[RoomArrays], **extra) -> SceneSet:
         valid[n, :s] = True
         for name, arr in fields.items():
             arr[n, :s] = getattr(r, name)
-    dist = np.full((N, S, C), UNREACHABLE, np.int32)
-    action = np.full((N, S, C), NO_ACTION, np.int32)
+    dist = np.full((N, S, C), UNREACHABLE, np.int16)
+    action = np.full((N, S, C), NO_ACTION, np.int8)
     for lo in range(0, N, EXPERT_CHUNK):
         hi = min(lo + EXPERT_CHUNK, N)
         idx = np.arange(lo, lo + EXPERT_CHUNK) % N  # pad the last chunk: one compile

@@ -28,7 +28,7 @@ ROOM_SIZE = {
     "bathroom": ((8, 11), (9, 13)),
 }
 REACHABLE_RANGE = {
-    "kitchen": (60, 260), "living_room": (150, 420),
+    "kitchen": (60, 260), "living_room": (150, 380),
     "bedroom": (90, 320), "bathroom": (40, 120),
 }
 WALL_OBJECT_HEIGHT = (1.15, 1.40)  # LightSwitch centre height range (m)

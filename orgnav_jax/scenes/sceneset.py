@@ -21,7 +21,7 @@ from flax import struct
 
 from orgnav_jax.constants import NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES, SPLITS, split_index
 
-UNREACHABLE = 2**20   # dist sentinel: no state where the category is visible can be reached
+UNREACHABLE = 32767   # dist sentinel (int16 max): no state where the category is visible can be reached
 NO_ACTION = -1        # expert_action sentinel for unreachable targets and padding states
 
 
@@ -33,8 +33,8 @@ class SceneSet:
     pose: jax.Array            # (N, S, 4) float32 x, z (m), rotation (deg), horizon (deg)
     visible: jax.Array         # (N, S, C) bool: category c in view and within 1.5 m
     present: jax.Array         # (N, C) bool: the scene has category c
-    dist: jax.Array            # (N, S, C) int32 shortest path (actions) to a visible state
-    expert_action: jax.Array   # (N, S, C) int32 first action of such a path; Done if visible
+    dist: jax.Array            # (N, S, C) int16 shortest path (actions) to a visible state
+    expert_action: jax.Array   # (N, S, C) int8 first action of such a path; Done if visible
     det_box: jax.Array         # (N, S, C, 4) float16 best box per category, pixels (x1,y1,x2,y2)
     det_conf: jax.Array        # (N, S, C) float16 its confidence; 0 = no detection
     appearance: jax.Array      # (N, S, C, Da) float16 appearance code (or feature if no basis)

@@ -1,0 +1,66 @@
+"""Command line: build, inspect or render the synthetic benchmark.
+
+    python -m orgnav_jax.scenes build --preset small --out data/small [--seed 0]
+    python -m orgnav_jax.scenes info data/small
+    python -m orgnav_jax.scenes show 201 [--seed 0]     # ASCII top view of one room
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+from orgnav_jax.scenes.builder import build
+from orgnav_jax.scenes.layout import generate_room, render_ascii
+from orgnav_jax.scenes.presets import PRESETS
+from orgnav_jax.scenes.storage import disk_size, load, save
+from orgnav_jax.scenes.summary import format_summary, summarize
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m orgnav_jax.scenes", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    b = sub.add_parser("build", help="generate a benchmark and save it")
+    b.add_argument("--preset", default="small", help=f"one of {sorted(PRESETS)}")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--out", required=True, help="output directory (replaced atomically)")
+    b.add_argument("--json", action="store_true", help="also print the summary as JSON")
+    i = sub.add_parser("info", help="summarize a saved benchmark")
+    i.add_argument("path")
+    i.add_argument("--json", action="store_true")
+    s = sub.add_parser("show", help="print the ASCII top view of one generated room")
+    s.add_argument("floorplan", type=int, help="AI2-THOR number, e.g. 1, 201, 301, 401")
+    s.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+
+    try:
+        if args.command == "build":
+            if args.preset not in PRESETS:
+                parser.error(f"unknown preset {args.preset!r}: expected one of {sorted(PRESETS)}")
+            t0 = time.perf_counter()
+            scenes = build(args.preset, args.seed, progress=True)
+            build_s = time.perf_counter() - t0
+            save(scenes, args.out)
+            summary = summarize(scenes)
+            summary.update(build_s=build_s, disk_mb=disk_size(args.out) / 2**20, out=args.out)
+        elif args.command == "info":
+            summary = summarize(load(args.path, mmap=True))
+            summary.update(disk_mb=disk_size(args.path) / 2**20)
+        else:
+            print(render_ascii(generate_room(args.seed, args.floorplan)))
+            print("# wall, = furniture, o blocking object, . reachable, * object, D door")
+            return 0
+    except (ValueError, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(format_summary(summary))
+    if args.json:
+        print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

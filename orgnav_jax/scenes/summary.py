@@ -1,0 +1,82 @@
+"""Summary statistics of a SceneSet, as a dict and as a printed table."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from orgnav_jax.constants import CATEGORIES, ROOM_TYPES, SPLITS, TARGETS, category_index
+from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet
+
+
+def summarize(scenes: SceneSet) -> dict:
+    """Rooms per split and type, state counts, target reachability, feature sizes.
+
+    reachable_share[room_type][target]: over rooms of that type holding the target, the
+    share of valid start states from which some state seeing it can be reached.
+    """
+    valid = np.asarray(scenes.state_valid)
+    n_states = valid.sum(1)
+    room_type, split = np.asarray(scenes.room_type), np.asarray(scenes.split)
+    present = np.asarray(scenes.present)
+    dist = np.asarray(scenes.dist)
+    rooms = {s: {t: int(((split == i) & (room_type == j)).sum())
+                 for j, t in enumerate(ROOM_TYPES)} for i, s in enumerate(SPLITS)}
+    share = {}
+    for j, t in enumerate(ROOM_TYPES):
+        share[t] = {}
+        for name in TARGETS[t]:
+            c = category_index(name)
+            idx = np.flatnonzero((room_type == j) & present[:, c])
+            if idx.size == 0:
+                share[t][name] = None
+                continue
+            ok = (dist[idx, :, c] < UNREACHABLE) & valid[idx]
+            share[t][name] = float(ok.sum() / valid[idx].sum())
+    per_state = sum(np.asarray(getattr(scenes, f)).nbytes
+                    for f in ("next_state", "state_valid", "pose", "visible", "dist",
+                              "expert_action", "det_box", "det_conf", "appearance",
+                              "global_feat")) / max(valid.size, 1)
+    return {
+        "preset": scenes.meta("preset"), "seed": scenes.meta("seed"),
+        "num_scenes": scenes.num_scenes, "padded_states": scenes.num_states,
+        "rooms": rooms,
+        "states": {"min": int(n_states.min()), "median": float(np.median(n_states)),
+                   "max": int(n_states.max())},
+        "states_by_type": {t: float(np.median(n_states[room_type == j]))
+                           for j, t in enumerate(ROOM_TYPES) if (room_type == j).any()},
+        "reachable_share": share,
+        "features": {
+            "global": f"7x7x{scenes.global_dim}",
+            "appearance": f"{len(CATEGORIES)}x{scenes.appearance_dim}",
+            "stored_global": f"7x7x{scenes.global_feat.shape[-1]} {scenes.global_feat.dtype}",
+            "stored_appearance": f"{len(CATEGORIES)}x{scenes.appearance.shape[-1]} "
+                                 f"{scenes.appearance.dtype}",
+            "bytes_per_state": round(per_state, 1),
+        },
+    }
+
+
+def format_summary(s: dict) -> str:
+    """The dict from `summarize` as a human table."""
+    lines = [f"SceneSet preset={s['preset']} seed={s['seed']}: {s['num_scenes']} rooms, "
+             f"S padded to {s['padded_states']}"]
+    lines.append(f"{'rooms':<8}" + "".join(f"{t:>13}" for t in ROOM_TYPES))
+    for split, per in s["rooms"].items():
+        lines.append(f"{split:<8}" + "".join(f"{per[t]:>13}" for t in ROOM_TYPES))
+    st = s["states"]
+    lines.append(f"states per room: min {st['min']}  median {st['median']:.0f}  max {st['max']}"
+                 "  (median by type: " + ", ".join(f"{t} {v:.0f}" for t, v in
+                                                     s["states_by_type"].items()) + ")")
+    lines.append("share of start states from which the target is reachable:")
+    for t, per in s["reachable_share"].items():
+        cells = [f"{name} {v:.2f}" if v is not None else f"{name} -" for name, v in per.items()]
+        lines.append(f"  {t:<12} " + ", ".join(cells))
+    f = s["features"]
+    lines.append(f"features: global {f['global']} (stored {f['stored_global']}), appearance "
+                 f"{f['appearance']} (stored {f['stored_appearance']}), "
+                 f"{f['bytes_per_state']:.0f} bytes/state")
+    if "disk_mb" in s:
+        lines.append(f"disk: {s['disk_mb']:.1f} MB")
+    if "build_s" in s:
+        lines.append(f"build time: {s['build_s']:.1f} s")
+    return "\n".join(lines)
