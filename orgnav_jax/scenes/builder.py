@@ -10,7 +10,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from orgnav_jax.constants import (
-    NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPE_INDEX, SPLIT_INDEX,
+    NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPE_INDEX, ROOM_TYPES, SPLIT_INDEX, TARGETS,
+    category_index,
 )
 from orgnav_jax.scenes import detector, geometry, global_view
 from orgnav_jax.scenes.expert import expert_tables
@@ -104,14 +105,26 @@ def stack_rooms(rooms: list[RoomArrays], **extra) -> SceneSet:
         d, a = expert_tables(jnp.asarray(next_state[idx]), jnp.asarray(fields["visible"][idx]),
                              jnp.asarray(valid[idx]))
         dist[lo:hi], action[lo:hi] = np.asarray(d)[:hi - lo], np.asarray(a)[:hi - lo]
+    room_type = np.array([r.room_type for r in rooms], np.int32)
+    present = np.stack([r.present for r in rooms])
     return SceneSet(
         next_state=next_state, state_valid=valid, dist=dist, expert_action=action,
-        present=np.stack([r.present for r in rooms]),
-        room_type=np.array([r.room_type for r in rooms], np.int32),
+        present=present, targets=valid_targets(room_type, present, dist),
+        state_count=valid.sum(1).astype(np.int32), room_type=room_type,
         scene_id=np.array([r.floorplan for r in rooms], np.int32),
         split=np.array([r.split for r in rooms], np.int32),
         **fields, **extra,
     )
+
+
+def valid_targets(room_type: np.ndarray, present: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(N,) room types, (N, C) present, (N, S, C) dist -> (N, C) bool episode targets:
+    a target of the room type (constants.TARGETS), present, and reachable (visible from
+    some state; the state graph of a room is strongly connected)."""
+    of_type = np.zeros((len(ROOM_TYPES), NUM_CATEGORIES), bool)
+    for t, names in enumerate(ROOM_TYPES):
+        of_type[t, [category_index(c) for c in TARGETS[names]]] = True
+    return of_type[room_type] & present & (dist < UNREACHABLE).any(1)
 
 
 def build(preset: str | ScenePreset = "small", seed: int = 0, *, progress: bool = False,

@@ -23,6 +23,9 @@ from orgnav_jax.constants import NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES, SPLITS
 
 UNREACHABLE = 32767   # dist sentinel (int16 max): no state where the category is visible can be reached
 NO_ACTION = -1        # expert_action sentinel for unreachable targets and padding states
+PER_STATE_FIELDS = ("next_state", "state_valid", "pose", "visible", "dist", "expert_action",
+                    "det_box", "det_conf", "appearance", "global_feat")
+SHARED_FIELDS = ("appearance_proto", "appearance_basis", "global_basis", "info")
 
 
 @struct.dataclass
@@ -33,6 +36,9 @@ class SceneSet:
     pose: jax.Array            # (N, S, 4) float32 x, z (m), rotation (deg), horizon (deg)
     visible: jax.Array         # (N, S, C) bool: category c in view and within 1.5 m
     present: jax.Array         # (N, C) bool: the scene has category c
+    targets: jax.Array         # (N, C) bool: valid episode targets (a target of the room
+                               #   type, present, and visible from some reachable state)
+    state_count: jax.Array     # (N,) int32 valid states; they are the first ones
     dist: jax.Array            # (N, S, C) int16 shortest path (actions) to a visible state
     expert_action: jax.Array   # (N, S, C) int8 first action of such a path; Done if visible
     det_box: jax.Array         # (N, S, C, 4) float16 best box per category, pixels (x1,y1,x2,y2)
@@ -86,16 +92,13 @@ class SceneSet:
             index = np.flatnonzero(index)
         if index.size == 0:
             raise ValueError("selection is empty: no scene matches")
-        s_max = int(np.asarray(self.state_valid)[index].sum(1).max())
-        per_scene = {f.name for f in dataclasses.fields(self)
-                     if f.name not in ("appearance_proto", "appearance_basis",
-                                       "global_basis", "info")}
+        s_max = int(np.asarray(self.state_count)[index].max())
         out = {}
-        for name in per_scene:
-            a = np.asarray(getattr(self, name))[index]
-            if a.ndim >= 2 and name not in ("present",):
-                a = a[:, :s_max]
-            out[name] = a
+        for f in dataclasses.fields(self):
+            if f.name in SHARED_FIELDS:
+                continue
+            a = np.asarray(getattr(self, f.name))[index]
+            out[f.name] = a[:, :s_max] if f.name in PER_STATE_FIELDS else a
         return self.replace(**out)
 
     def split_view(self, name: str) -> "SceneSet":
@@ -121,7 +124,7 @@ class SceneSet:
         C, A = NUM_CATEGORIES, NUM_ACTIONS
         expect = {
             "next_state": (N, S, A), "pose": (N, S, 4), "visible": (N, S, C),
-            "present": (N, C), "dist": (N, S, C), "expert_action": (N, S, C),
+            "present": (N, C), "targets": (N, C), "state_count": (N,), "dist": (N, S, C), "expert_action": (N, S, C),
             "det_box": (N, S, C, 4), "det_conf": (N, S, C), "room_type": (N,),
             "scene_id": (N,), "split": (N,),
         }
@@ -136,6 +139,11 @@ class SceneSet:
         if tuple(self.global_feat.shape[:4]) != (N, S, 7, 7):
             raise ValueError(f"{source}: field 'global_feat' has shape {self.global_feat.shape},"
                              f" expected ({N}, {S}, 7, 7, G)")
+        counts = np.asarray(self.state_count)
+        valid = np.asarray(self.state_valid)
+        if not (valid == (np.arange(S)[None] < counts[:, None])).all():
+            raise ValueError(f"{source}: field 'state_valid' must be True exactly on the first "
+                             "state_count[n] states of each scene")
         nxt = np.asarray(self.next_state)
         if nxt.size and (nxt.min() < 0 or nxt.max() >= S):
             raise ValueError(f"{source}: field 'next_state' holds indices outside [0, {S})")
