@@ -80,4 +80,5 @@ def detect(rng: np.random.Generator, seen: np.ndarray, dist: np.ndarray, boxes: 
     det_conf[fp] = rng.uniform(0.05, 0.35, n)
     code[fp] = 1.5 * rng.normal(0, 1, (n, APPEARANCE_CODE_DIM))
     det_box[det_conf == 0] = 0.0
+    code[det_conf == 0] = 0.0
     return det_box, det_conf.astype(np.float32), code

@@ -32,6 +32,7 @@ def save(scenes: SceneSet, path: str | os.PathLike) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    old = None
     try:
         fields = {}
         for name in _array_fields():
@@ -46,7 +47,6 @@ def save(scenes: SceneSet, path: str | os.PathLike) -> Path:
                 "info": {k: list(v) if isinstance(v, tuple) else v for k, v in info.items()},
                 "fields": fields}
         (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
-        old = None
         if path.exists():
             old = path.with_name(f".{path.name}.old")
             if old.exists():
@@ -56,6 +56,8 @@ def save(scenes: SceneSet, path: str | os.PathLike) -> Path:
         if old is not None:
             shutil.rmtree(old)
     except BaseException:
+        if old is not None and old.exists() and not path.exists():
+            old.rename(path)  # interrupted between the two renames: put the old set back
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return path

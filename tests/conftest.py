@@ -1,0 +1,66 @@
+"""Shared fixtures for the scene tests.
+
+The "tiny" benchmark (16 rooms) is built at most once per session; most tests use
+single generated rooms (fast) or small hand-made rooms instead.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from orgnav_jax import constants as K
+from orgnav_jax import scenes
+from orgnav_jax.scenes import catalog, layout
+
+# A few floorplans of every room type (train numbering), for single-room tests.
+SAMPLE_FLOORPLANS: tuple[int, ...] = (1, 2, 3, 201, 202, 203, 301, 302, 303, 401, 402, 403)
+
+
+@pytest.fixture(scope="session")
+def tiny_scenes() -> scenes.SceneSet:
+    """scenes.build("tiny", seed=0): 2 train, 1 val, 1 test room per room type."""
+    return scenes.build("tiny", seed=0)
+
+
+@pytest.fixture(scope="session")
+def sample_rooms() -> dict[int, layout.Room]:
+    """generate_room(0, fp) for a few floorplans of each room type."""
+    return {fp: layout.generate_room(0, fp) for fp in SAMPLE_FLOORPLANS}
+
+
+def _make_room(shape: tuple[int, int] = (9, 9), *, walls=(), furniture=None,
+               unreachable=(), objects=(), room_type: str = "kitchen") -> layout.Room:
+    """A hand-made Room: an outer wall ring plus
+
+    walls: extra full-height wall cells (i, j);
+    furniture: {(i, j): block height in metres} (furniture kind 'table');
+    unreachable: free cells that are nevertheless marked not reachable;
+    objects: (category name, x, y_centre, z) tuples, sized from the catalog.
+    """
+    H, W = shape
+    wall = np.ones((H, W), bool)
+    wall[1:-1, 1:-1] = False
+    for i, j in walls:
+        wall[i, j] = True
+    furn = np.full((H, W), -1, np.int32)
+    block = np.where(wall, np.inf, 0.0).astype(np.float32)
+    for (i, j), h in (furniture or {}).items():
+        furn[i, j] = catalog.FURNITURE_INDEX["table"]
+        block[i, j] = h
+    reachable = ~wall & (furn < 0) & (block == 0)
+    for i, j in unreachable:
+        reachable[i, j] = False
+    cats = np.array([K.category_index(c) for c, *_ in objects], np.int32)
+    centre = np.array([[x, y, z] for _, x, y, z in objects], np.float32).reshape(-1, 3)
+    size = np.array([catalog.OBJECTS[c].size for c, *_ in objects], np.float32)
+    height = np.array([catalog.OBJECTS[c].height for c, *_ in objects], np.float32)
+    return layout.Room(floorplan=1, room_type=room_type, wall=wall, furniture=furn,
+                       block_height=block, reachable=reachable, obj_category=cats,
+                       obj_center=centre, obj_size=size, obj_height=height, door=(0, 1))
+
+
+@pytest.fixture
+def make_room():
+    """Factory for hand-made rooms (see _make_room)."""
+    return _make_room
