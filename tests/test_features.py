@@ -129,15 +129,10 @@ def test_detection_arrays_well_formed(tiny_scenes):
 
 
 def _room_detections(room, seed, fp):
+    from orgnav_jax.scenes import builder
+    assert room.floorplan == fp
     cells = geometry.reachable_cells(room.reachable)
-    poses = geometry.state_poses(cells)
-    los = geometry.line_of_sight(room.block_height, cells, room.obj_center, room.obj_size,
-                                 detector.MAX_DETECT_DISTANCE)
-    seen, dist, _ = geometry.object_visibility(poses, cells, los, room.obj_center)
-    boxes = detector.project_boxes(poses, room.obj_center, room.obj_size, room.obj_height)
-    box, conf, code = detector.detect(np.random.default_rng([seed, fp, 1]), seen, dist, boxes,
-                                      room.obj_category)
-    return seen, dist, box, conf, code
+    return builder.room_detections(room, seed, cells, geometry.state_poses(cells))
 
 
 def test_detection_pipeline_matches_room_arrays():

@@ -41,17 +41,27 @@ class RoomArrays:
     global_feat: np.ndarray  # (S, 7, 7, Dg)
 
 
+def room_detections(room: Room, seed: int, cells: np.ndarray, poses: np.ndarray):
+    """Line of sight and the detector run on every state of a room.
+
+    Returns seen (S, K) and horizontal distance (S, K) per object instance, and
+    det_box (S, C, 4), det_conf (S, C), appearance code (S, C, Da) per category.
+    """
+    los = geometry.line_of_sight(room.block_height, cells, room.obj_center, room.obj_size,
+                                 detector.MAX_DETECT_DISTANCE)
+    seen, dist, _ = geometry.object_visibility(poses, cells, los, room.obj_center)
+    boxes = detector.project_boxes(poses, room.obj_center, room.obj_size, room.obj_height)
+    det_rng = np.random.default_rng([seed, room.floorplan, 1])
+    det_box, det_conf, code = detector.detect(det_rng, seen, dist, boxes, room.obj_category)
+    return seen, dist, det_box, det_conf, code
+
+
 def room_arrays(seed: int, floorplan: int, split: str, room: Room | None = None) -> RoomArrays:
     """Everything precomputed for one room (pure function of seed and floorplan)."""
     room = room if room is not None else generate_room(seed, floorplan)
     cells = geometry.reachable_cells(room.reachable)
     poses = geometry.state_poses(cells)
-    los = geometry.line_of_sight(room.block_height, cells, room.obj_center, room.obj_size,
-                                 detector.MAX_DETECT_DISTANCE)
-    seen, dist, _ = geometry.object_visibility(poses, cells, los, room.obj_center)
-    boxes = detector.project_boxes(poses, room.obj_center, room.obj_size, room.obj_height)
-    det_rng = np.random.default_rng([seed, floorplan, 1])
-    det_box, det_conf, app_code = detector.detect(det_rng, seen, dist, boxes, room.obj_category)
+    seen, dist, det_box, det_conf, app_code = room_detections(room, seed, cells, poses)
     present = np.zeros(NUM_CATEGORIES, bool)
     present[room.obj_category] = True
     return RoomArrays(

@@ -253,8 +253,7 @@ class _Builder:
         self.add_object(category, x, y, z)
 
     def finish(self, floorplan: int) -> Room:
-        free = ~self.wall & (self.furniture < 0) & (self.block_height == 0)
-        reachable = _largest_component(free)
+        reachable = _largest_component(self.free())
         objs = np.asarray(self.objects, np.float64).reshape(-1, 6)
         return Room(
             floorplan=floorplan, room_type=self.room_type, wall=self.wall,
