@@ -1,0 +1,184 @@
+"""Fixed, seeded evaluation episodes: sample, save to JSON, load and check against scenes.
+
+An EpisodeSet indexes one SceneSet (usually a split view): episode e starts in scene
+`scene[e]` at state `start[e]` looking for category `target[e]`. On disk, episodes are
+stored in the authors' form (scene name, goal_object_type, state key) plus
+`optimal_len`, so a file names rooms and poses, never array indices:
+
+    {"format": "orgnav_jax.episodes/1", "split": "test", "seed": 0, "scenes": {...},
+     "episodes": [{"scene": "FloorPlan22", "goal_object_type": "Microwave",
+                   "state": "1.25|2.00|90|30", "optimal_len": 9}, ...]}
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from orgnav_jax.constants import CATEGORIES, ROOM_TYPES, category_index
+from orgnav_jax.scenes.keys import key_index, state_key
+from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet
+
+FORMAT = "orgnav_jax.episodes/1"
+EPISODES_PER_ROOM_TYPE = 250
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeSet:
+    """E episodes over one SceneSet; every array is (E,) int32."""
+    scene: np.ndarray
+    start: np.ndarray
+    target: np.ndarray
+    optimal_len: np.ndarray
+    room_type: np.ndarray
+    split: str = ""
+    seed: int = 0
+
+    def __len__(self) -> int:
+        return int(self.scene.shape[0])
+
+    def subset(self, index) -> "EpisodeSet":
+        """The episodes at `index` (ints or a bool mask)."""
+        pick = lambda a: np.asarray(a)[index]  # noqa: E731
+        return dataclasses.replace(self, scene=pick(self.scene), start=pick(self.start),
+                                   target=pick(self.target),
+                                   optimal_len=pick(self.optimal_len),
+                                   room_type=pick(self.room_type))
+
+
+def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYPE,
+                    seed: int = 0, min_dist: int = 1, split: str = "") -> EpisodeSet:
+    """Seeded episodes: for each room type present, `per_room_type` episodes, each a
+    scene of that type (uniform), a start state (uniform over the scene's states) and a
+    valid target (uniform over those at distance >= min_dist from the start)."""
+    rng = np.random.default_rng(seed)
+    room_type = np.asarray(scenes.room_type)
+    counts = np.asarray(scenes.state_count)
+    targets = np.asarray(scenes.targets)
+    dist = np.asarray(scenes.dist)
+    out = {k: [] for k in ("scene", "start", "target", "optimal_len", "room_type")}
+    for t in range(len(ROOM_TYPES)):
+        of_type = np.flatnonzero(room_type == t)
+        if of_type.size == 0:
+            continue
+        made = 0
+        while made < per_room_type:
+            n = int(rng.choice(of_type))
+            s = int(rng.integers(counts[n]))
+            d = dist[n, s].astype(np.int64)
+            ok = np.flatnonzero(targets[n] & (d >= min_dist) & (d < UNREACHABLE))
+            if ok.size == 0:
+                continue
+            c = int(rng.choice(ok))
+            for k, v in zip(out, (n, s, c, int(d[c]), t)):
+                out[k].append(v)
+            made += 1
+    arrays = {k: np.asarray(v, np.int32) for k, v in out.items()}
+    return EpisodeSet(**arrays, split=split, seed=seed)
+
+
+def to_records(episodes: EpisodeSet, scenes: SceneSet) -> list[dict]:
+    """Episodes in the authors' JSON form (plus optimal_len)."""
+    names = scenes.scene_names
+    pose = np.asarray(scenes.pose)
+    return [{"scene": names[n], "goal_object_type": CATEGORIES[c],
+             "state": state_key(pose[n, s]), "optimal_len": int(L)}
+            for n, s, c, L in zip(episodes.scene, episodes.start, episodes.target,
+                                  episodes.optimal_len)]
+
+
+def from_records(records: list[dict], scenes: SceneSet, source: str = "episodes",
+                 on_unreachable: str = "error", split: str = "", seed: int = 0
+                 ) -> tuple[EpisodeSet, int]:
+    """Episodes from authors'-form records -> (EpisodeSet, number skipped).
+
+    Each record needs "scene", "goal_object_type" and "state"; "optimal_len", when
+    present, must match these scenes. A target not visible from anywhere reachable is an
+    error, or with on_unreachable="skip" a warning and a skip (counted)."""
+    if on_unreachable not in ("error", "skip"):
+        raise ValueError(f"on_unreachable must be 'error' or 'skip', got {on_unreachable!r}")
+    names = {name: i for i, name in enumerate(scenes.scene_names)}
+    pose, counts = np.asarray(scenes.pose), np.asarray(scenes.state_count)
+    dist, targets = np.asarray(scenes.dist), np.asarray(scenes.targets)
+    room_type = np.asarray(scenes.room_type)
+    index_cache: dict[int, dict[str, int]] = {}
+    rows, skipped = [], 0
+    for e, rec in enumerate(records):
+        where = f"{source}: episode {e}"
+        if not isinstance(rec, dict):
+            raise ValueError(f"{where} must be an object, got {type(rec).__name__}")
+        missing = [k for k in ("scene", "goal_object_type", "state") if k not in rec]
+        if missing:
+            raise ValueError(f"{where} lacks field(s) {missing}: expected 'scene', "
+                             "'goal_object_type' and 'state'")
+        if rec["scene"] not in names:
+            raise ValueError(f"{where} names scene {rec['scene']!r}, which is not in this "
+                             f"SceneSet ({len(names)} scenes, e.g. {list(names)[:3]}); "
+                             "was the file made for other scenes?")
+        n = names[rec["scene"]]
+        try:
+            c = category_index(rec["goal_object_type"])
+        except ValueError as err:
+            raise ValueError(f"{where}: {err}") from None
+        keys = index_cache.setdefault(n, key_index(pose[n], counts[n]))
+        if rec["state"] not in keys:
+            raise ValueError(f"{where}: state {rec['state']!r} is not a state of "
+                             f"{rec['scene']}; was the file made for other scenes?")
+        s = keys[rec["state"]]
+        d = int(dist[n, s, c])
+        if d >= UNREACHABLE or not targets[n, c]:
+            if on_unreachable == "skip":
+                skipped += 1
+                continue
+            raise ValueError(f"{where}: target {rec['goal_object_type']} is not a valid "
+                             f"target of {rec['scene']} (absent or never visible)")
+        if "optimal_len" in rec and int(rec["optimal_len"]) != d:
+            raise ValueError(f"{where}: optimal_len {rec['optimal_len']} differs from the "
+                             f"scenes' shortest path {d}; was the file made for other scenes?")
+        rows.append((n, s, c, d, int(room_type[n])))
+    if skipped:
+        warnings.warn(f"{source}: skipped {skipped} episode(s) whose target is unreachable",
+                      stacklevel=2)
+    arr = np.asarray(rows, np.int32).reshape(-1, 5)
+    return EpisodeSet(*arr.T.copy(), split=split, seed=seed), skipped
+
+
+def save_episodes(path: str | os.PathLike, episodes: EpisodeSet, scenes: SceneSet) -> None:
+    """Write episodes as JSON (atomically: a temporary file, then a rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"format": FORMAT, "split": episodes.split, "seed": episodes.seed,
+           "scenes": {k: v for k, v in scenes.info if isinstance(v, (int, str, float))},
+           "episodes": to_records(episodes, scenes)}
+    lines = ",\n".join(json.dumps(r) for r in doc.pop("episodes"))  # one episode a line
+    text = json.dumps(doc)[:-1] + ', "episodes": [\n' + lines + "\n]}\n"
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def load_episodes(path: str | os.PathLike, scenes: SceneSet) -> EpisodeSet:
+    """Read an episode file written by save_episodes (or a bare list of authors'
+    records) and map it onto `scenes`; clear errors if it does not fit them."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"episode file {path} does not exist")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"episode file {path} is not valid JSON: {err}") from None
+    if isinstance(doc, list):
+        doc = {"episodes": doc}
+    if not isinstance(doc, dict) or not isinstance(doc.get("episodes"), list):
+        raise ValueError(f"episode file {path}: expected an object with an 'episodes' list "
+                         f"(format {FORMAT}) or a list of episodes")
+    if "format" in doc and doc["format"] != FORMAT:
+        raise ValueError(f"episode file {path}: format {doc['format']!r}, expected {FORMAT!r}")
+    episodes, _ = from_records(doc["episodes"], scenes, source=f"episode file {path}",
+                               split=doc.get("split", ""), seed=int(doc.get("seed", 0)))
+    return episodes
