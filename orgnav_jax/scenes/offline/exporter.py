@@ -1,0 +1,140 @@
+"""Write any SceneSet in the authors' offline format, one FloorPlanN folder per scene,
+so that their PyTorch code can run on exactly our rooms.
+
+Per scene: graph.json (node_link_data; one link per successful action, failed moves are
+absent as in the release), grid.json (reachable points, y = files.GRID_Y),
+visible_object_map_1.5.json, optimal_action.json (our expert; only where a path
+exists), resnet18_featuremap.hdf5 ((1, G, 7, 7) per state) and
+fasterrcnn_features_22cls.hdf5 ((22, d + 5) per state), features decoded at the
+SceneSet's widths with scenes.features.decode_*.
+
+Object ids: a SceneSet keeps per-category visibility, not object instances, so each
+present category gets ONE synthetic objectId 'Type|+x.xx|+01.00|+z.zz' placed at the
+mean position of the states that see it (the room's centre if none does); its state
+list is exactly visible[:, c]. Categories present but never visible get an empty list.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import h5py
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from orgnav_jax.constants import CATEGORIES, DONE
+from orgnav_jax.scenes.features import decode_appearance, decode_global
+from orgnav_jax.scenes.keys import scene_state_keys
+from orgnav_jax.scenes.offline import files
+from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet
+
+CHUNK = 256  # states decoded per jitted call (fixed: one compile per feature width)
+OBJECT_Y = 1.0
+
+
+def object_ids(pose: np.ndarray, visible: np.ndarray, present: np.ndarray) -> dict[int, str]:
+    """One scene's valid states: (S, 4) poses, (S, C) visible, (C,) present ->
+    {category: synthetic objectId}."""
+    out = {}
+    for c in np.flatnonzero(present):
+        where = pose[visible[:, c], :2] if visible[:, c].any() else pose[:, :2]
+        x, z = where.mean(0)
+        out[int(c)] = f"{CATEGORIES[c]}|{x:+06.2f}|{OBJECT_Y:+06.2f}|{z:+06.2f}"
+    return out
+
+
+@jax.jit
+def _decode(bases: dict, glob_code, app_code, conf):
+    ns = SimpleNamespace(**bases)
+    return decode_global(ns, glob_code), decode_appearance(ns, app_code, conf)
+
+
+def decoded_features(scenes: SceneSet, n: int, chunk: int = CHUNK):
+    """Yield (lo, hi, global (k, 7, 7, G) float32, appearance (k, C, d) float32) for the
+    valid states lo..hi of scene n, decoded as the model sees them."""
+    bases = {k: None if getattr(scenes, k) is None else jnp.asarray(getattr(scenes, k))
+             for k in ("global_basis", "appearance_basis", "appearance_proto")}
+    count = int(np.asarray(scenes.state_count)[n])
+    glob, app = np.asarray(scenes.global_feat[n]), np.asarray(scenes.appearance[n])
+    conf = np.asarray(scenes.det_conf[n])
+    for lo in range(0, count, chunk):
+        hi = min(lo + chunk, count)
+        idx = np.minimum(np.arange(lo, lo + chunk), count - 1)  # pad: fixed shape
+        g, a = _decode(bases, jnp.asarray(glob[idx]), jnp.asarray(app[idx]),
+                       jnp.asarray(conf[idx], jnp.float32))
+        yield lo, hi, np.asarray(g)[:hi - lo], np.asarray(a)[:hi - lo]
+
+
+def _dump(path: Path, obj) -> None:
+    path.write_text(json.dumps(obj, separators=(",", ":")))
+
+
+def _write_json_files(folder: Path, keys, pose, nxt, visible, present, dist, action) -> None:
+    S = len(keys)
+    src, act = np.nonzero(nxt[:, :DONE] != np.arange(S)[:, None])
+    _dump(folder / files.GRAPH_FILE, {
+        "directed": True, "multigraph": False, "graph": {},
+        "nodes": [{"id": k} for k in keys],
+        "links": [{"source": keys[s], "target": keys[nxt[s, a]]} for s, a in zip(src, act)]})
+    points = sorted({(round(float(x), 2), round(float(z), 2)) for x, z in pose[:, :2]})
+    _dump(folder / files.GRID_FILE, [{"x": x, "y": files.GRID_Y, "z": z} for x, z in points])
+    ids = object_ids(pose, visible, present)
+    _dump(folder / files.VISIBLE_FILES[0],
+          {oid: [keys[s] for s in np.flatnonzero(visible[:, c])] for c, oid in ids.items()})
+    ok = dist < UNREACHABLE
+    _dump(folder / files.OPTIMAL_FILE,
+          {k: {CATEGORIES[c]: int(action[s, c]) for c in np.flatnonzero(ok[s])}
+           for s, k in enumerate(keys)})
+
+
+def export_scene(scenes: SceneSet, n: int, folder: Path, hdf5_dtype: str = "float32") -> int:
+    """Write scene n into `folder` (created). Returns its number of states."""
+    count = int(np.asarray(scenes.state_count)[n])
+    pose = np.asarray(scenes.pose[n])[:count]
+    keys = scene_state_keys(pose, count)
+    _write_json_files(folder, keys, pose, np.asarray(scenes.next_state[n])[:count],
+                      np.asarray(scenes.visible[n])[:count], np.asarray(scenes.present[n]),
+                      np.asarray(scenes.dist[n])[:count],
+                      np.asarray(scenes.expert_action[n])[:count])
+    box = np.asarray(scenes.det_box[n], np.float32)
+    conf = np.asarray(scenes.det_conf[n], np.float32)
+    with h5py.File(folder / files.RESNET_FILE, "w") as fg, \
+            h5py.File(folder / files.EXPORT_DETECTION_FILE, "w") as fd:
+        for lo, hi, glob, app in decoded_features(scenes, n):
+            glob = glob.transpose(0, 3, 1, 2)[:, None].astype(hdf5_dtype)  # (k, 1, G, 7, 7)
+            det = np.concatenate([app, box[lo:hi], conf[lo:hi, :, None]], -1).astype(hdf5_dtype)
+            for i in range(hi - lo):
+                fg.create_dataset(keys[lo + i], data=glob[i])
+                fd.create_dataset(keys[lo + i], data=det[i])
+    return count
+
+
+def export_offline(scenes: SceneSet, out_dir: str | os.PathLike, *, hdf5_dtype: str = "float32",
+                   progress: bool = False) -> dict:
+    """Write every scene of `scenes` as out_dir/FloorPlanN (each replaced atomically).
+    Returns {"scenes", "states", "seconds", "bytes"}."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t0, states = time.perf_counter(), 0
+    for n, name in enumerate(tqdm(scenes.scene_names, desc="export", disable=not progress)):
+        final, tmp = out_dir / name, out_dir / f".{name}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        try:
+            states += export_scene(scenes, n, tmp, hdf5_dtype)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        if final.exists():
+            shutil.rmtree(final)
+        tmp.rename(final)
+    size = sum(f.stat().st_size for d in scenes.scene_names for f in (out_dir / d).iterdir())
+    return {"scenes": scenes.num_scenes, "states": states,
+            "seconds": round(time.perf_counter() - t0, 3), "bytes": size}
