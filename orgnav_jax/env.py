@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
-from orgnav_jax.constants import DONE, NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES
+from orgnav_jax.constants import ACTIONS, CATEGORIES, DONE, NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES
 from orgnav_jax.scenes.sceneset import SceneSet
 
 START_TRIES = 4  # start states drawn per reset; the first with a valid target is kept
@@ -33,7 +34,7 @@ class EnvParams:
     min_start_dist: int = struct.field(pytree_node=False, default=1)
 
     @classmethod
-    def evaluation(cls, **kw) -> "EnvParams":
+    def evaluation(cls, **kw) -> EnvParams:
         """The paper's evaluation caps: 100 steps, 200 in living rooms."""
         caps = tuple(200 if t == "living_room" else 100 for t in ROOM_TYPES)
         return cls(max_steps=caps, **kw)
@@ -76,6 +77,39 @@ def observe(state: EnvState, scenes: SceneSet) -> Observation:
     )
 
 
+def _concrete(x) -> bool:
+    """True when x is a concrete value (eager call), False under jit/vmap tracing."""
+    return not isinstance(x, jax.core.Tracer)
+
+
+def check_action(action) -> None:
+    """Eager calls: a clear error for an action outside 0..5. (Under jit values are not
+    known; there the transition tables are indexed with the action clipped to 0..5.)"""
+    if _concrete(action):
+        a = np.asarray(action)
+        if not np.issubdtype(a.dtype, np.integer) or a.size and (a.min() < 0 or a.max() >= NUM_ACTIONS):
+            raise ValueError(f"action {a.tolist()} invalid: expected integers in 0..{NUM_ACTIONS - 1} "
+                             f"({', '.join(ACTIONS)})")
+
+
+def check_episode(scene, start, target, scenes: SceneSet) -> None:
+    """Eager calls: clear errors for a scene, start state or target the SceneSet lacks."""
+    if not all(_concrete(x) for x in (scene, start, target)):
+        return
+    n, s, c = (int(np.asarray(x)) for x in (scene, start, target))
+    if not 0 <= n < scenes.num_scenes:
+        raise ValueError(f"scene index {n} outside 0..{scenes.num_scenes - 1}")
+    name = scenes.scene_names[n]
+    if not 0 <= s < int(scenes.state_count[n]):
+        raise ValueError(f"start state {s} is not a state of {name} "
+                         f"(it has {int(scenes.state_count[n])})")
+    if not 0 <= c < NUM_CATEGORIES or not bool(scenes.targets[n, c]):
+        valid = [CATEGORIES[i] for i in np.flatnonzero(np.asarray(scenes.targets[n]))]
+        what = CATEGORIES[c] if 0 <= c < NUM_CATEGORIES else f"index {c}"
+        raise ValueError(f"target {what} is not a valid target of {name} (absent or never "
+                         f"visible); valid targets: {valid}")
+
+
 def start_episode(scene: jax.Array, start: jax.Array, target: jax.Array,
                   scenes: SceneSet, params: EnvParams) -> EnvState:
     """The EnvState at the start of a given episode (scene, start state, target).
@@ -83,6 +117,7 @@ def start_episode(scene: jax.Array, start: jax.Array, target: jax.Array,
     The visited set is a trail of at most max(params.max_steps) + 1 states: far smaller
     than a bitset over S, and an any() over it is cheap.
     """
+    check_episode(scene, start, target, scenes)
     trail = jnp.full(max(params.max_steps) + 1, -1, jnp.int32).at[0].set(start)
     return EnvState(
         scene=scene, state=start, target=target, steps=jnp.int32(0), path_len=jnp.int32(0),
@@ -93,18 +128,29 @@ def start_episode(scene: jax.Array, start: jax.Array, target: jax.Array,
 
 
 def sample_episode(key: jax.Array, scenes: SceneSet, params: EnvParams):
-    """A random (scene, start, target): a scene uniformly, a start state uniformly among
-    its states, a target uniformly among its valid targets whose distance from the start
-    is at least params.min_start_dist. Returns three () int32."""
-    k_scene, k_start, k_target = jax.random.split(key, 3)
-    scene = jax.random.randint(k_scene, (), 0, scenes.num_scenes)
-    starts = jax.random.randint(k_start, (START_TRIES,), 0, scenes.state_count[scene])
-    d = scenes.dist[scene, starts].astype(jnp.int32)                       # (T, C)
-    ok = scenes.targets[scene][None] & (d >= params.min_start_dist)        # (T, C)
-    pick = jnp.argmax(ok.any(1))
-    logits = jnp.where(ok[pick], 0.0, -jnp.inf)
-    target = jax.random.categorical(k_target, logits).astype(jnp.int32)
-    return scene.astype(jnp.int32), starts[pick].astype(jnp.int32), target
+    """A random (scene, start, target) -> three () int32.
+
+    A scene uniformly; START_TRIES start states uniformly among its states, keeping the
+    first from which some valid target is at least params.min_start_dist away; a target
+    uniformly among those. (If every try sees every target, the last try is kept and
+    the target drawn among all valid ones; with 4 tries this is vanishingly rare.)
+    Draws START_TRIES + 2 random words in one call; no categorical sampling, so it is
+    cheap enough to run on every auto-reset step.
+    """
+    bits = jax.random.bits(key, (START_TRIES + 2,), jnp.uint32)
+    scene = (bits[0] % jnp.uint32(scenes.num_scenes)).astype(jnp.int32)
+    starts = (bits[1:START_TRIES + 1] % scenes.state_count[scene].astype(jnp.uint32)
+              ).astype(jnp.int32)                                          # (T,)
+    valid = scenes.targets[scene]                                          # (C,)
+    far = scenes.dist[scene, starts] >= params.min_start_dist              # (T, C)
+    ok = valid[None] & far
+    has = ok.any(1)
+    pick = jnp.where(has.any(), jnp.argmax(has), START_TRIES - 1)
+    allowed = jnp.where(has.any(), ok[pick], valid)
+    count = allowed.sum().astype(jnp.uint32)
+    k = (bits[START_TRIES + 1] % jnp.maximum(count, 1)).astype(jnp.int32)
+    target = jnp.argmax(jnp.cumsum(allowed) > k).astype(jnp.int32)        # k-th allowed
+    return scene, starts[pick], target
 
 
 def reset(key: jax.Array, scenes: SceneSet, params: EnvParams):
@@ -113,13 +159,10 @@ def reset(key: jax.Array, scenes: SceneSet, params: EnvParams):
     return observe(state, scenes), state
 
 
-def step_env(state: EnvState, action: jax.Array, scenes: SceneSet, params: EnvParams):
-    """One action, no reset -> (obs, state, reward, done, info).
-
-    info: success (Done with the target visible), failed (the move left the agent in
-    place), path_len, optimal_len, steps (of the finished or running episode).
-    """
-    action = jnp.asarray(action, jnp.int32)
+def _transition(state: EnvState, action: jax.Array, scenes: SceneSet, params: EnvParams):
+    """One action -> (new state, reward, done, info); see step_env."""
+    check_action(action)
+    action = jnp.clip(jnp.asarray(action, jnp.int32), 0, NUM_ACTIONS - 1)
     nxt = scenes.next_state[state.scene, state.state, action]
     is_done = action == DONE
     success = is_done & scenes.visible[state.scene, state.state, state.target]
@@ -129,20 +172,31 @@ def step_env(state: EnvState, action: jax.Array, scenes: SceneSet, params: EnvPa
     done = is_done | (steps >= cap)
     new = state.replace(
         state=nxt, steps=steps, path_len=state.path_len + (~is_done).astype(jnp.int32),
-        prev_action=action, last_failed=failed, revisited=jnp.any(state.trail == nxt),
+        prev_action=action, last_failed=failed,
+        revisited=jnp.where(is_done, state.revisited, jnp.any(state.trail == nxt)),
         trail=state.trail.at[jnp.minimum(steps, state.trail.shape[0] - 1)].set(nxt),
     )
     reward = jnp.where(success, params.success_reward, params.step_penalty).astype(jnp.float32)
     info = {"success": success, "failed": failed, "path_len": new.path_len,
             "optimal_len": state.optimal_len, "steps": steps}
+    return new, reward, done, info
+
+
+def step_env(state: EnvState, action: jax.Array, scenes: SceneSet, params: EnvParams):
+    """One action, no reset -> (obs, state, reward, done, info).
+
+    info: success (Done with the target visible), failed (the move left the agent in
+    place), path_len, optimal_len, steps (of the finished or running episode).
+    """
+    new, reward, done, info = _transition(state, action, scenes, params)
     return observe(new, scenes), new, reward, done, info
 
 
 def step(key: jax.Array, state: EnvState, action: jax.Array, scenes: SceneSet,
          params: EnvParams):
-    """step_env, then a fresh random episode where the old one ended (training)."""
-    obs, new, reward, done, info = step_env(state, action, scenes, params)
-    obs_r, state_r = reset(key, scenes, params)
-    new = jax.tree_util.tree_map(lambda r, s: jnp.where(done, r, s), state_r, new)
-    obs = jax.tree_util.tree_map(lambda r, s: jnp.where(done, r, s), obs_r, obs)
-    return obs, new, reward, done, info
+    """step_env, then a fresh random episode where the old one ended (training).
+    reward, done and info describe the action taken; obs and state the next episode."""
+    new, reward, done, info = _transition(state, action, scenes, params)
+    fresh = start_episode(*sample_episode(key, scenes, params), scenes, params)
+    new = jax.tree_util.tree_map(lambda r, s: jnp.where(done, r, s), fresh, new)
+    return observe(new, scenes), new, reward, done, info

@@ -42,9 +42,9 @@ class EpisodeSet:
     def __len__(self) -> int:
         return int(self.scene.shape[0])
 
-    def subset(self, index) -> "EpisodeSet":
+    def subset(self, index) -> EpisodeSet:
         """The episodes at `index` (ints or a bool mask)."""
-        pick = lambda a: np.asarray(a)[index]  # noqa: E731
+        pick = lambda a: np.asarray(a)[index]
         return dataclasses.replace(self, scene=pick(self.scene), start=pick(self.start),
                                    target=pick(self.target),
                                    optimal_len=pick(self.optimal_len),

@@ -1,0 +1,111 @@
+"""Evaluate a policy on a split's fixed episode set: `python -m orgnav_jax.evaluate`.
+
+    python -m orgnav_jax.evaluate --policy random --split test
+    python -m orgnav_jax.evaluate --policy expert --split val --preset tiny
+    python -m orgnav_jax.evaluate --episodes runs/eval/episodes-small-test.json ...
+
+The episode set is sampled with --episode-seed (250 per room type) and written next to
+the results, or replayed from --episodes. Results: a JSON file (overall, per room type,
+per target) and a Table-1-style printout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from orgnav_jax import env, evaluation
+from orgnav_jax.episodes import (
+    EPISODES_PER_ROOM_TYPE,
+    load_episodes,
+    sample_episodes,
+    save_episodes,
+)
+from orgnav_jax.scenes import SceneSet, load, load_or_build
+
+POLICIES = {"random": evaluation.random_policy, "expert": evaluation.expert_policy}
+
+
+def split_scenes(preset: str, scenes_dir: str | None, split: str, seed: int = 0) -> SceneSet:
+    """One split of a saved SceneSet directory, or of the cached preset, on device."""
+    full = load(scenes_dir) if scenes_dir else load_or_build(preset, seed)
+    return full.split_view(split).to_device()
+
+
+def episode_set(scenes: SceneSet, split: str, episodes_file: str | None, seed: int,
+                per_room_type: int, default_path: Path):
+    """Replay `episodes_file`, or sample a seeded set and save it at default_path."""
+    if episodes_file:
+        return load_episodes(episodes_file, scenes), Path(episodes_file)
+    episodes = sample_episodes(scenes, per_room_type, seed=seed, split=split)
+    save_episodes(default_path, episodes, scenes)
+    return episodes, default_path
+
+
+def run(policy: evaluation.Policy, policy_params, scenes: SceneSet, episodes, seed: int,
+        show_progress: bool = True) -> dict:
+    """evaluation.evaluate with a progress bar over episodes."""
+    with tqdm(total=len(episodes), desc=f"evaluating {policy.name}", unit="ep",
+              disable=not show_progress, file=sys.stderr) as bar:
+        return evaluation.evaluate(policy, policy_params, scenes, episodes,
+                                   env.EnvParams.evaluation(), seed=seed,
+                                   progress=bar.update)
+
+
+def print_results(name: str, result: dict) -> None:
+    print(evaluation.format_table({name: result["overall"]}))
+    print()
+    print(evaluation.format_table(result["per_room_type"], title="per room type:"))
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m orgnav_jax.evaluate", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    who = ap.add_mutually_exclusive_group()
+    who.add_argument("--policy", choices=sorted(POLICIES), default=None)
+    who.add_argument("--checkpoint", metavar="RUN_DIR", help="a training run directory")
+    ap.add_argument("--split", choices=("val", "test"), default="test")
+    ap.add_argument("--preset", default="small", help="scene preset (built once, cached)")
+    ap.add_argument("--scenes", metavar="DIR", help="a saved SceneSet directory instead")
+    ap.add_argument("--episodes", metavar="FILE", help="replay this episode file")
+    ap.add_argument("--episode-seed", type=int, default=0)
+    ap.add_argument("--episodes-per-room-type", type=int, default=EPISODES_PER_ROOM_TYPE)
+    ap.add_argument("--seed", type=int, default=0, help="seed of stochastic policies")
+    ap.add_argument("--out", metavar="FILE", help="results JSON (default runs/eval/...)")
+    ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = parser().parse_args(argv)
+    preset, scenes_dir = args.preset, args.scenes
+    if args.checkpoint:
+        from orgnav_jax.training.policy import load_run_policy  # the trainer's checkpoints
+        policy, policy_params, run_cfg = load_run_policy(args.checkpoint)
+        preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
+        name = Path(args.checkpoint).name
+    else:
+        policy, policy_params = POLICIES[args.policy or "random"](), None
+        name = args.policy or "random"
+    scenes = split_scenes(preset, scenes_dir, args.split)
+    tag = Path(scenes_dir).name if scenes_dir else preset
+    out = Path(args.out or f"runs/eval/{name}-{tag}-{args.split}.json")
+    episodes, ep_path = episode_set(
+        scenes, args.split, args.episodes, args.episode_seed, args.episodes_per_room_type,
+        out.with_name(f"episodes-{tag}-{args.split}-seed{args.episode_seed}.json"))
+    result = run(policy, policy_params, scenes, episodes, args.seed, not args.quiet)
+    result.update({"policy": name, "split": args.split, "scenes": tag,
+                   "episode_file": str(ep_path)})
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    print_results(policy.name, result)
+    print(f"\nresults: {out}\nepisodes: {ep_path}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

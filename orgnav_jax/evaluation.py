@@ -1,0 +1,177 @@
+"""The evaluation protocol: fixed episodes, greedy actions, success / SPL / L>=5 metrics.
+
+    policy = random_policy()            # or expert_policy(), or a trained model's policy
+    result = evaluate(policy, None, scenes, episodes, EnvParams.evaluation())
+    print(format_table({"Random": result["overall"]}))
+
+A Policy is a pair of pure, batched functions:
+    init(batch, policy_params)                          -> carry (pytree, leading axis B)
+    act(policy_params, carry, obs, key, scenes, fresh)  -> (actions (B,) int32, carry)
+`obs` is a batched env.Observation; `fresh` (B,) bool is True on an episode's first step
+(recurrent policies reset their memory there). Every episode runs to Done or its cap
+(params.max_steps by room type) in one jitted lax.scan, vmapped over a batch.
+
+Metrics per episode: success; SPL = success * L_opt / max(L, L_opt), where L counts the
+non-Done actions and L_opt the shortest such path at the start; "L>=5" keeps the
+episodes with L_opt >= 5.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from orgnav_jax import env
+from orgnav_jax.constants import CATEGORIES, NUM_ACTIONS, ROOM_TYPES
+from orgnav_jax.episodes import EpisodeSet
+from orgnav_jax.scenes.sceneset import SceneSet
+
+LONG_PATH = 5  # the paper's "L>=5" columns
+
+
+@dataclasses.dataclass(frozen=True)
+class Policy:
+    """Batched policy functions (see module docstring); `name` is for tables."""
+    name: str
+    init: Callable[[int, Any], Any]
+    act: Callable[..., tuple[jax.Array, Any]]
+
+
+@functools.cache
+def random_policy() -> Policy:
+    """Uniform over the 6 actions (Done included), as the paper's Random row."""
+    def act(_, carry, obs, key, scenes, fresh):
+        return jax.random.randint(key, obs.state.shape, 0, NUM_ACTIONS), carry
+    return Policy("Random", lambda batch, _: (), act)
+
+
+@functools.cache
+def expert_policy() -> Policy:
+    """The shortest-path expert: scenes.expert_action for the observed target."""
+    def act(_, carry, obs, key, scenes, fresh):
+        target = jnp.argmax(obs.target, axis=-1)
+        return scenes.expert_action[obs.scene, obs.state, target].astype(jnp.int32), carry
+    return Policy("Expert", lambda batch, _: (), act)
+
+
+@functools.partial(jax.jit, static_argnames=("policy", "params", "num_steps"))
+def _run_batch(policy: Policy, policy_params, scenes: SceneSet, scene, start, target,
+               key, params: env.EnvParams, num_steps: int):
+    """Episodes (B,) -> dict of (B,) arrays: success, path_len, steps."""
+    batch = scene.shape[0]
+    state = jax.vmap(env.start_episode, in_axes=(0, 0, 0, None, None))(
+        scene, start, target, scenes, params)
+    obs = jax.vmap(env.observe, in_axes=(0, None))(state, scenes)
+    v_step = jax.vmap(env.step_env, in_axes=(0, 0, None, None))
+
+    def body(carry, key):
+        state, obs, pcarry, running, success, fresh = carry
+        action, pcarry = policy.act(policy_params, pcarry, obs, key, scenes, fresh)
+        obs2, state2, _, done, info = v_step(state, action, scenes, params)
+        keep = lambda new, old: jnp.where(
+            running.reshape(running.shape + (1,) * (new.ndim - 1)), new, old)
+        state = jax.tree_util.tree_map(keep, state2, state)
+        obs = jax.tree_util.tree_map(keep, obs2, obs)
+        success = success | (running & info["success"])
+        return (state, obs, pcarry, running & ~done, success, jnp.zeros_like(fresh)), None
+
+    init = (state, obs, policy.init(batch, policy_params), jnp.ones(batch, bool),
+            jnp.zeros(batch, bool), jnp.ones(batch, bool))
+    (state, _, _, running, success, _), _ = jax.lax.scan(
+        body, init, jax.random.split(key, num_steps))
+    return {"success": success, "path_len": state.path_len, "steps": state.steps,
+            "finished": ~running}
+
+
+def run_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: EpisodeSet,
+                 params: env.EnvParams, seed: int = 0, batch_size: int = 1000,
+                 progress: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
+    """Run every episode to its end -> per-episode numpy arrays (E,): success, path_len,
+    optimal_len, spl, room_type, target. Batches are padded to batch_size so the jitted
+    scan compiles once."""
+    num_steps = max(params.max_steps)
+    n = len(episodes)
+    out: dict[str, list] = {"success": [], "path_len": [], "steps": []}
+    key = jax.random.PRNGKey(seed)
+    for lo in range(0, n, batch_size):
+        idx = np.arange(lo, lo + batch_size) % n       # pad the last batch by wrapping
+        arrays = [jnp.asarray(a[idx]) for a in (episodes.scene, episodes.start,
+                                                episodes.target)]
+        res = _run_batch(policy, policy_params, scenes, *arrays, jax.random.fold_in(key, lo),
+                         params, num_steps)
+        if not bool(np.asarray(res["finished"]).all()):
+            raise RuntimeError("an episode outlived its cap; EnvParams.max_steps is inconsistent")
+        keep = min(batch_size, n - lo)
+        for k in out:
+            out[k].append(np.asarray(res[k])[:keep])
+        if progress:
+            progress(keep)
+    result = {k: np.concatenate(v) for k, v in out.items()}
+    L, L_opt = result["path_len"], episodes.optimal_len
+    result["optimal_len"] = np.asarray(L_opt)
+    result["spl"] = spl(result["success"], L, L_opt)
+    result["room_type"] = np.asarray(episodes.room_type)
+    result["target"] = np.asarray(episodes.target)
+    return result
+
+
+def spl(success, path_len, optimal_len) -> np.ndarray:
+    """Per-episode SPL = S * L_opt / max(L, L_opt) (0 where both lengths are 0)."""
+    success, L, L_opt = (np.asarray(a, np.float64) for a in (success, path_len, optimal_len))
+    return success * L_opt / np.maximum(np.maximum(L, L_opt), 1e-12)
+
+
+def summarize(per_episode: dict[str, np.ndarray]) -> dict[str, float]:
+    """Mean success and SPL over all episodes and over those with L_opt >= 5."""
+    long = per_episode["optimal_len"] >= LONG_PATH
+    mean = lambda a, m: float(np.mean(a[m])) if m.any() else float("nan")
+    every = np.ones_like(long)
+    return {"episodes": int(long.size), "success": mean(per_episode["success"], every),
+            "spl": mean(per_episode["spl"], every), "episodes_L5": int(long.sum()),
+            "success_L5": mean(per_episode["success"], long),
+            "spl_L5": mean(per_episode["spl"], long)}
+
+
+def metrics(per_episode: dict[str, np.ndarray]) -> dict:
+    """{"overall", "per_room_type", "per_target"} summaries (see summarize)."""
+    def part(mask):
+        return summarize({k: v[mask] for k, v in per_episode.items()})
+    out = {"overall": summarize(per_episode), "per_room_type": {}, "per_target": {}}
+    for t, name in enumerate(ROOM_TYPES):
+        m = per_episode["room_type"] == t
+        if m.any():
+            out["per_room_type"][name] = part(m)
+    for c, name in enumerate(CATEGORIES):
+        m = per_episode["target"] == c
+        if m.any():
+            out["per_target"][name] = part(m)
+    return out
+
+
+def evaluate(policy: Policy, policy_params, scenes: SceneSet, episodes: EpisodeSet,
+             params: env.EnvParams | None = None, seed: int = 0, batch_size: int = 1000,
+             progress: Callable[[int], None] | None = None) -> dict:
+    """run_episodes + metrics -> {"overall", "per_room_type", "per_target"}."""
+    params = params or env.EnvParams.evaluation()
+    per_episode = run_episodes(policy, policy_params, scenes, episodes, params, seed,
+                               min(batch_size, len(episodes)), progress)
+    return metrics(per_episode)
+
+
+def format_table(rows: dict[str, dict], title: str = "") -> str:
+    """A Table-1-style text table: one row per method, columns ALL (Success, SPL) and
+    L>=5 (Success, SPL), in percent."""
+    head = f"{'Method':<22} {'ALL':^17} {'L>=5':^17}\n{'':<22} {'Success':>8} {'SPL':>8} " \
+           f"{'Success':>8} {'SPL':>8}"
+    lines = [title] if title else []
+    lines += [head, "-" * len(head.splitlines()[-1])]
+    for name, m in rows.items():
+        lines.append(f"{name:<22} {100 * m['success']:8.1f} {100 * m['spl']:8.1f} "
+                     f"{100 * m['success_L5']:8.1f} {100 * m['spl_L5']:8.1f}")
+    return "\n".join(lines)
