@@ -3,6 +3,8 @@
     python -m orgnav_jax.scenes build --preset small --out data/small [--seed 0]
     python -m orgnav_jax.scenes info data/small
     python -m orgnav_jax.scenes show 201 [--seed 0]     # ASCII top view of one room
+    python -m orgnav_jax.scenes import --offline-dir DIR --out data/thor   # authors' data
+    python -m orgnav_jax.scenes export --preset tiny --out out/offline     # to their format
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import time
 
 from orgnav_jax.scenes.builder import build
 from orgnav_jax.scenes.layout import generate_room, render_ascii
+from orgnav_jax.scenes.offline import cli as offline_cli
 from orgnav_jax.scenes.presets import PRESETS
 from orgnav_jax.scenes.storage import disk_size, load, save
 from orgnav_jax.scenes.summary import format_summary, summarize
@@ -34,9 +37,12 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("show", help="print the ASCII top view of one generated room")
     s.add_argument("floorplan", type=int, help="AI2-THOR number, e.g. 1, 201, 301, 401")
     s.add_argument("--seed", type=int, default=0)
+    offline_cli.add_parsers(sub)
     args = parser.parse_args(argv)
 
     try:
+        if args.command in offline_cli.COMMANDS:
+            return offline_cli.run(args)
         if args.command == "build":
             if args.preset not in PRESETS:
                 parser.error(f"unknown preset {args.preset!r}: expected one of {sorted(PRESETS)}")

@@ -130,6 +130,6 @@ def write_offline_episodes(path: str | os.PathLike, episodes: EpisodeSet, scenes
     if path.suffix in PICKLE_SUFFIXES:
         tmp.write_bytes(pickle.dumps(records, protocol=2))
     else:
-        tmp.write_text(json.dumps(records, indent=0))
+        tmp.write_text("[\n" + ",\n".join(json.dumps(r) for r in records) + "\n]\n")
     os.replace(tmp, path)
     return path
