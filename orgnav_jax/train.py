@@ -1,0 +1,66 @@
+"""Train a navigation agent: `python -m orgnav_jax.train`.
+
+    python -m orgnav_jax.train                               # baseline, small benchmark
+    python -m orgnav_jax.train --preset small --model we --run-dir runs/we
+    python -m orgnav_jax.train --run-dir runs/baseline-small --resume
+
+With no arguments it builds (or reuses) the small synthetic benchmark, trains the
+Baseline for the default budget, evaluates the best-on-val checkpoint on the test split
+(250 episodes per room type) and prints the Table-1-style row. Every TrainConfig field is
+an option; see --help.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from orgnav_jax import evaluate
+from orgnav_jax.training.config import (
+    PRESETS, add_config_arguments, get_config, load_config, overrides_from_args)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m orgnav_jax.train", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--preset", default="small", choices=sorted(PRESETS))
+    ap.add_argument("--resume", action="store_true",
+                    help="continue the run in --run-dir from its latest checkpoint")
+    ap.add_argument("--no-test", action="store_true", help="skip the final test evaluation")
+    ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_config_arguments(ap)
+    return ap
+
+
+def test_best(run_dir: str, quiet: bool = False) -> dict:
+    """Evaluate the run's best-on-val checkpoint on the test split; write test_results.json."""
+    out = Path(run_dir) / "test_results.json"
+    argv = ["--checkpoint", run_dir, "--split", "test", "--out", str(out)]
+    return evaluate.main(argv + (["--quiet"] if quiet else []))
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = parser().parse_args(argv)
+    overrides = overrides_from_args(args)
+    try:
+        if args.resume and "run_dir" in overrides and not (set(overrides) - {"run_dir"}):
+            cfg = load_config(overrides["run_dir"])   # resume with the saved config
+        else:
+            cfg = get_config(args.preset, **overrides)
+    except (ValueError, FileNotFoundError) as err:
+        sys.exit(f"error: {err}")
+    from orgnav_jax.training.loop import train     # imports JAX; after argument checks
+    print(f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {cfg.num_envs} envs x "
+          f"{cfg.rollout_len} steps, {cfg.total_env_steps:,} env steps", flush=True)
+    summary = train(cfg, resume=args.resume, progress=not args.quiet)
+    summary.pop("runner")
+    print(json.dumps({k: v for k, v in summary.items()}, default=str))
+    if not args.no_test:
+        summary["test"] = test_best(cfg.run_dir, args.quiet)["overall"]
+    return summary
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,77 @@
+"""Checkpoints with orbax: the whole RunnerState plus a JSON of config and progress.
+
+Layout of a run directory:
+    config.json          the TrainConfig (written once, atomically)
+    checkpoints/<step>/  the latest runs (orbax; a save is written to a temporary
+                         directory and renamed when complete, so an interrupted save
+                         leaves the previous checkpoint loadable)
+    best/<step>/         the best-on-val parameters
+    metrics.jsonl, tb/   logs
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import jax
+import orbax.checkpoint as ocp
+
+from orgnav_jax.training.config import CONFIG_VERSION, TrainConfig
+
+logging.getLogger("absl").setLevel(logging.ERROR)
+
+
+def _manager(path: Path, keep: int) -> ocp.CheckpointManager:
+    options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True,
+                                           enable_async_checkpointing=False)
+    return ocp.CheckpointManager(path.absolute(), options=options)
+
+
+class RunCheckpoints:
+    """The latest-N and best-on-val checkpoint managers of a run directory."""
+
+    def __init__(self, run_dir: str | os.PathLike, keep: int = 2):
+        self.run_dir = Path(run_dir)
+        self.latest = _manager(self.run_dir / "checkpoints", keep)
+        self.best = _manager(self.run_dir / "best", 1)
+
+    def save(self, step: int, runner, meta: dict, best: bool = False) -> None:
+        meta = dict(meta, config_version=CONFIG_VERSION)
+        manager = self.best if best else self.latest
+        state = runner.params if best else runner
+        manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
+                                                   meta=ocp.args.JsonSave(meta)), force=True)
+        manager.wait_until_finished()
+
+    def latest_step(self) -> int | None:
+        return self.latest.latest_step()
+
+    def restore(self, like, best: bool = False, step: int | None = None):
+        """-> (state shaped like `like`, meta dict). Clear errors for a checkpoint from
+        another model or version."""
+        manager = self.best if best else self.latest
+        step = manager.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"no {'best' if best else ''} checkpoint in {self.run_dir}")
+        abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, like)
+        try:
+            out = manager.restore(step, args=ocp.args.Composite(
+                state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()))
+        except (ValueError, KeyError, TypeError) as err:
+            raise ValueError(f"checkpoint {manager.directory}/{step} does not fit this model "
+                             f"and config (another model or widths?): {err}") from None
+        meta = out["meta"]
+        if meta.get("config_version") != CONFIG_VERSION:
+            raise ValueError(f"checkpoint {manager.directory}/{step} has config version "
+                             f"{meta.get('config_version')}, expected {CONFIG_VERSION}")
+        return out["state"], meta
+
+
+def write_config(run_dir: str | os.PathLike, cfg: TrainConfig) -> None:
+    path = Path(run_dir) / "config.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name("config.json.tmp")
+    tmp.write_text(cfg.to_json())
+    os.replace(tmp, path)

@@ -1,0 +1,96 @@
+"""The runner state and the vectorized rollout (a lax.scan over T env steps).
+
+RunnerState holds everything a run needs to continue bit-for-bit: network parameters,
+optimizer state, env states, LSTM carries, per-env episode returns, the PRNG key and
+the update count. A Trajectory holds what the loss needs to replay the rollout.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from orgnav_jax import env
+from orgnav_jax.models import model_inputs, reset_carry
+
+
+@struct.dataclass
+class RunnerState:
+    params: Any
+    opt_state: Any
+    env_state: env.EnvState   # (N,) batched
+    carry: Any                # LSTM carry, leading axis N
+    fresh: jax.Array          # (N,) bool: the env's episode starts at this step
+    ep_return: jax.Array      # (N,) float32 return so far in the running episode
+    key: jax.Array
+    update: jax.Array         # () int32 updates done
+
+
+@struct.dataclass
+class Trajectory:
+    """(T, N) per-step arrays (obs is a batched Observation with leading (T, N))."""
+    obs: env.Observation
+    fresh: jax.Array
+    action: jax.Array
+    reward: jax.Array
+    done: jax.Array
+    value: jax.Array
+    expert_action: jax.Array  # (T, N) int32 expert's action at the step's state
+    last_failed: jax.Array    # (T, N) bool: the previous action failed (part of deadlock)
+
+
+@struct.dataclass
+class EpisodeStats:
+    """Sums over episodes that finished during a chunk (fixed shapes, inside jit)."""
+    count: jax.Array
+    success: jax.Array
+    spl: jax.Array
+    ret: jax.Array
+    length: jax.Array
+
+    @classmethod
+    def zeros(cls) -> "EpisodeStats":
+        z = jnp.float32(0)
+        return cls(z, z, z, z, z)
+
+
+def rollout(model, runner: RunnerState, scenes, env_params: env.EnvParams, length: int):
+    """Act for `length` steps in every env -> (runner, trajectory, last value (N,), stats)."""
+    num_envs = runner.fresh.shape[0]
+    v_step = jax.vmap(env.step, in_axes=(0, 0, 0, None, None))
+    v_observe = jax.vmap(env.observe, in_axes=(0, None))
+
+    def body(carry, _):
+        runner, stats = carry
+        key, k_act, k_env = jax.random.split(runner.key, 3)
+        obs = v_observe(runner.env_state, scenes)
+        lstm = reset_carry(runner.carry, runner.fresh)
+        logits, value, lstm, _ = model.apply(runner.params, model_inputs(scenes, obs), lstm)
+        action = jax.random.categorical(k_act, logits).astype(jnp.int32)
+        st = runner.env_state
+        target = st.target
+        expert = scenes.expert_action[st.scene, st.state, target].astype(jnp.int32)
+        _, env_state, reward, done, info = v_step(jax.random.split(k_env, num_envs), st,
+                                                   action, scenes, env_params)
+        ep_return = runner.ep_return + reward
+        spl = info["success"] * info["optimal_len"] / jnp.maximum(
+            jnp.maximum(info["path_len"], info["optimal_len"]), 1)
+        d = done.astype(jnp.float32)
+        stats = EpisodeStats(stats.count + d.sum(), stats.success + (d * info["success"]).sum(),
+                             stats.spl + (d * spl).sum(), stats.ret + (d * ep_return).sum(),
+                             stats.length + (d * info["steps"]).sum())
+        traj = Trajectory(obs, runner.fresh, action, reward, done, value, expert,
+                          st.last_failed)
+        runner = runner.replace(env_state=env_state, carry=lstm, fresh=done,
+                                ep_return=jnp.where(done, 0.0, ep_return), key=key)
+        return (runner, stats), traj
+
+    (runner, stats), traj = jax.lax.scan(body, (runner, EpisodeStats.zeros()), None,
+                                         length=length)
+    obs = v_observe(runner.env_state, scenes)
+    _, last_value, _, _ = model.apply(runner.params, model_inputs(scenes, obs),
+                                      reset_carry(runner.carry, runner.fresh))
+    return runner, traj, last_value, stats

@@ -1,0 +1,74 @@
+"""One jitted chunk of training: `updates_per_chunk` x (rollout + gradient step).
+
+    init_runner(cfg, model, scenes, key)      -> RunnerState
+    train_chunk(runner, scenes)               -> (RunnerState, metrics dict of scalars)
+where train_chunk = make_train_chunk(cfg, model, optimizer), jitted once.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from orgnav_jax import env
+from orgnav_jax.models import init_params
+from orgnav_jax.training.config import TrainConfig
+from orgnav_jax.training.losses import a2c_loss, gae
+from orgnav_jax.training.rollout import EpisodeStats, RunnerState, rollout
+
+
+def env_params(cfg: TrainConfig) -> env.EnvParams:
+    return env.EnvParams(success_reward=cfg.success_reward, step_penalty=cfg.step_penalty,
+                         max_steps=(cfg.max_steps,) * 4)
+
+
+def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
+                       optax.adam(cfg.lr, eps=cfg.adam_eps))
+
+
+def init_runner(cfg: TrainConfig, model, optimizer, scenes, key) -> RunnerState:
+    k_params, k_env, k_run = jax.random.split(key, 3)
+    params = init_params(model, k_params, scenes)
+    _, env_state = jax.vmap(env.reset, in_axes=(0, None, None))(
+        jax.random.split(k_env, cfg.num_envs), scenes, env_params(cfg))
+    return RunnerState(params=params, opt_state=optimizer.init(params), env_state=env_state,
+                       carry=model.initial_carry(cfg.num_envs),
+                       fresh=jnp.ones(cfg.num_envs, bool),
+                       ep_return=jnp.zeros(cfg.num_envs, jnp.float32), key=k_run,
+                       update=jnp.int32(0))
+
+
+def make_train_chunk(cfg: TrainConfig, model, optimizer):
+    """A jitted (runner, scenes) -> (runner, metrics) doing cfg.updates_per_chunk updates."""
+    params_env = env_params(cfg)
+    grad_fn = jax.value_and_grad(a2c_loss, has_aux=True)
+
+    @jax.jit
+    def train_chunk(runner: RunnerState, scenes):
+        def one_update(carry, _):
+            runner, stats = carry
+            carry0 = runner.carry
+            runner, traj, last_value, ep = rollout(model, runner, scenes, params_env,
+                                                   cfg.rollout_len)
+            adv, ret = gae(traj.reward, traj.value, traj.done, last_value, cfg.gamma,
+                           cfg.gae_lambda)
+            (loss, aux), grads = grad_fn(runner.params, model, scenes, traj, carry0, adv,
+                                         ret, cfg)
+            updates, opt_state = optimizer.update(grads, runner.opt_state, runner.params)
+            params = optax.apply_updates(runner.params, updates)
+            runner = runner.replace(params=params, opt_state=opt_state,
+                                    update=runner.update + 1)
+            stats = jax.tree_util.tree_map(jnp.add, stats, ep)
+            return (runner, stats), dict(aux, loss=loss, grad_norm=optax.global_norm(grads))
+
+        (runner, stats), aux = jax.lax.scan(one_update, (runner, EpisodeStats.zeros()), None,
+                                            length=cfg.updates_per_chunk)
+        metrics = {k: v.mean() for k, v in aux.items()}
+        metrics["loss_finite"] = jnp.isfinite(aux["loss"]).all()
+        metrics.update(episodes=stats.count, success=stats.success, spl=stats.spl,
+                       ret=stats.ret, length=stats.length)
+        return runner, metrics
+
+    return train_chunk
