@@ -146,6 +146,18 @@ def test_float16_hdf5_imports_identically(original, imported, tmp_path):
     np.testing.assert_array_equal(back.appearance, want.appearance)
 
 
+def test_an_imported_set_exports_and_imports_unchanged(imported, tmp_path):
+    """Raw features (bases None) are written as they are."""
+    one = imported[0].select([imported[0].scene_names.index("FloorPlan421")])
+    export_offline(one, tmp_path)
+    again, report = import_offline(tmp_path)
+    for f in dataclasses.fields(S.SceneSet):
+        if f.name != "info" and getattr(one, f.name) is not None:
+            np.testing.assert_array_equal(getattr(again, f.name), getattr(one, f.name),
+                                          err_msg=f.name)
+    assert report["optimal_action"]["mismatches"] == 0
+
+
 @pytest.mark.parametrize("suffix", [".json", ".pkl"])
 def test_episodes_round_trip(original, imported, tmp_path, suffix):
     back = imported[0]

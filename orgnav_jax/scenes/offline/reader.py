@@ -108,7 +108,7 @@ def _visibility(folder: Path, index: dict[str, int], unknown_types: str, report:
             raise OfflineFormatError(f"{path}: objectId {oid!r} maps to {type(states).__name__},"
                                      " expected a list of state keys")
         present[c] = True
-        unknown = [s for s in states if s not in index]
+        unknown = [s for s in states if not isinstance(s, str) or s not in index]
         if unknown:
             raise OfflineFormatError(f"{path}: objectId {oid!r} lists {len(unknown)} state "
                                      f"key(s) not in graph.json: {examples(unknown)}")
