@@ -63,7 +63,8 @@ def _run(args: list[str]) -> tuple[dict, float, float]:
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode:
         raise SystemExit(f"child {args[0]} failed with exit code {proc.returncode}")
-    return json.loads(out.strip().splitlines()[-1]), time.perf_counter() - t0, usage.ru_maxrss / 1024
+    wall = time.perf_counter() - t0
+    return json.loads(out.strip().splitlines()[-1]), wall, usage.ru_maxrss / 1024  # KiB -> MiB
 
 
 def _dir_mb(path: Path) -> float:
@@ -87,7 +88,7 @@ def main() -> None:
     work = Path(args.workdir or tempfile.mkdtemp(prefix="offline_bench."))
     work.mkdir(parents=True, exist_ok=True)
     try:
-        exp, exp_wall, exp_rss = _run(["--child-export", str(work / "offline"),
+        exp, _, exp_rss = _run(["--child-export", str(work / "offline"),
                                        *map(str, args.rooms), str(args.seed)])
         offline_mb = _dir_mb(work / "offline")
         imp, imp_wall, imp_rss = _run(["--child-import", str(work / "offline"),
@@ -100,9 +101,11 @@ def main() -> None:
     row = {
         "preset": "paper", "rooms_per_type": args.rooms, "scenes": imp["scenes"],
         "states": imp["states"], "padded_states": imp["padded_states"],
-        "build_s": exp["build_s"], "export_s": exp["seconds"], "export_peak_rss_mb": round(exp_rss),
+        "build_s": exp["build_s"], "export_s": exp["seconds"],
+        "export_peak_rss_mb": round(exp_rss),
         "offline_mb": round(offline_mb, 1), "import_s": imp["import_s"],
-        "import_phases_s": imp["phases"], "import_states_per_s": round(imp["states"] / imp["import_s"]),
+        "import_phases_s": imp["phases"],
+        "import_states_per_s": round(imp["states"] / imp["import_s"]),
         "import_hdf5_mb_per_s": round(offline_mb / imp["import_s"], 1),
         "save_s": imp["save_s"], "import_child_wall_s": round(imp_wall, 1),
         "import_peak_rss_mb": round(imp_rss), "output_mb": imp["output_mb"],
@@ -111,7 +114,7 @@ def main() -> None:
     head = ("scenes", "states", "offline_mb", "export_s", "import_s", "import_states_per_s",
             "import_hdf5_mb_per_s", "output_mb", "import_peak_rss_mb")
     print(" | ".join(f"{h:>20}" for h in head))
-    print(" | ".join(f"{str(row[h]):>20}" for h in head))
+    print(" | ".join(f"{row[h]!s:>20}" for h in head))
     print(json.dumps({"benchmark": "offline_import", "cpu_count": os.cpu_count(),
                       "machine": platform.machine(), "results": [row]}))
 

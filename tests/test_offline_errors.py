@@ -144,7 +144,7 @@ def test_edge_matching_no_action(scene):
               lambda d: {**d, "links": d["links"] + [{"source": jump[0], "target": jump[1]}]})
     expect(scene.parent, r"1 edge\(s\) match no action .*'-0\.50\|1\.00\|0\|0 -> "
                          r"-0\.50\|1\.50\|0\|0'")
-    scenes, report = import_offline(scene.parent, unmatched_edges="ignore")
+    _, report = import_offline(scene.parent, unmatched_edges="ignore")
     assert report["scenes"][0]["ignored_edges"] == 1
 
 
@@ -241,8 +241,8 @@ def small_set(tmp_path_factory):
 
 @pytest.mark.parametrize("record, pattern", [
     ({"scene": "FloorPlan401", "goal_object_type": "Sink", "task_data": ["Bowl|+0|+0|+0"],
-      "state": START}, r"episode 0 task_data objectId 'Bowl\|\+0\|\+0\|\+0' is a Bowl, but "
-                       r"goal_object_type is 'Sink'"),
+      "state": START}, (r"episode 0 task_data objectId 'Bowl\|\+0\|\+0\|\+0' is a Bowl, "
+                        r"but goal_object_type is 'Sink'")),
     ({"scene": "FloorPlan401", "goal_object_type": "Towel", "state": START},
      r"episode 0: unknown category 'Towel'"),
     ({"scene": "FloorPlan401", "goal_object_type": "Sink", "state": "9.00|9.00|0|0"},

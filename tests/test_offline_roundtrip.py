@@ -16,24 +16,30 @@ import pytest
 from orgnav_jax import scenes as S
 from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.scenes.__main__ import main
+from orgnav_jax.scenes.builder import feature_bases, room_arrays, stack_rooms
 from orgnav_jax.scenes.keys import key_index, scene_state_keys
 from orgnav_jax.scenes.offline import (
     export_offline, import_offline, load_offline_episodes, write_offline_episodes,
 )
 from orgnav_jax.scenes.offline.exporter import decoded_features
+from orgnav_jax.scenes.presets import get_preset
 
 PER_STATE = ("next_state", "pose", "visible", "dist", "expert_action", "det_box", "det_conf")
 PER_SCENE = ("present", "targets", "state_count", "room_type", "scene_id", "split")
 OBJECT_ID = re.compile(r"^[A-Za-z]+\|[+-]\d\d\.\d\d\|[+-]\d\d\.\d\d\|[+-]\d\d\.\d\d$")
 
 
+ROOMS = ((22, "test"), (401, "train"), (402, "train"), (421, "val"), (422, "test"))
+
+
 @pytest.fixture(scope="module")
-def original(tiny_scenes) -> S.SceneSet:
-    """FloorPlan22 (a kitchen) and the four bathrooms: every split, two room types."""
-    names = tiny_scenes.scene_names
-    return tiny_scenes.select([names.index(n) for n in
-                               ("FloorPlan22", "FloorPlan401", "FloorPlan402", "FloorPlan421",
-                                "FloorPlan422")])
+def original() -> S.SceneSet:
+    """Five rooms of the tiny benchmark (FloorPlan22, a kitchen, and the four bathrooms:
+    every split, two room types), built exactly as scenes.build("tiny", 0) builds them
+    but without the other eleven rooms, to keep the tests fast."""
+    rooms = [room_arrays(0, fp, split) for fp, split in ROOMS]
+    return stack_rooms(rooms, info=(("preset", "tiny"), ("seed", 0)),
+                       **feature_bases(get_preset("tiny")))
 
 
 @pytest.fixture(scope="module")

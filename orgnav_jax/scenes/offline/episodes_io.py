@@ -44,7 +44,7 @@ def plain_pickle_loads(data: bytes, source: str = "pickle"):
     """Unpickle plain data only (PlainUnpickler); OfflineFormatError otherwise."""
     try:
         return PlainUnpickler(io.BytesIO(data)).load()
-    except Exception as e:  # untrusted bytes: any failure is a format error
+    except Exception as e:  # noqa: BLE001 -- untrusted bytes: any failure is a format error
         raise OfflineFormatError(f"{source}: cannot read the pickle: {e}") from None
 
 
@@ -60,8 +60,9 @@ def read_records(path: str | os.PathLike) -> list[dict]:
         try:
             doc = json.loads(data)
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise OfflineFormatError(f"{path}: not valid JSON ({e}); expected a list of "
-                                     "episodes {scene, goal_object_type, task_data, state}") from None
+            raise OfflineFormatError(
+                f"{path}: not valid JSON ({e}); expected a list of episodes "
+                "{scene, goal_object_type, task_data, state}") from None
     if isinstance(doc, dict) and isinstance(doc.get("episodes"), list):
         doc = doc["episodes"]
     if not isinstance(doc, (list, tuple)):

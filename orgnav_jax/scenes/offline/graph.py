@@ -38,7 +38,7 @@ def grid_states(pose: np.ndarray, keys: list[str], source: str) -> np.ndarray:
     out[:, 3] = np.searchsorted(np.asarray(HORIZONS), np.rint(pose[:, 3]))
     flat = np.ravel_multi_index(out.T, (out[:, 0].max() + 1, out[:, 1].max() + 1,
                                         NUM_HEADINGS, len(HORIZONS)))
-    uniq, first, counts = np.unique(flat, return_index=True, return_counts=True)
+    _, first, counts = np.unique(flat, return_index=True, return_counts=True)
     if (counts > 1).any():
         dup = flat[first[counts > 1][0]]
         same = [keys[i] for i in np.flatnonzero(flat == dup)]
@@ -92,7 +92,8 @@ def transitions(grid: np.ndarray, src: np.ndarray, dst: np.ndarray, keys: list[s
         half = len(act) // 2
         bad = bad[:half] & bad[half:]
     if bad.any() and unmatched == "error":
-        pairs = [f"{keys[s]} -> {keys[t]}" for s, t in zip(src[:len(bad)][bad], dst[:len(bad)][bad])]
+        pairs = [f"{keys[s]} -> {keys[t]}"
+                 for s, t in zip(src[:len(bad)][bad], dst[:len(bad)][bad])]
         raise OfflineFormatError(
             f"{source}: {len(pairs)} edge(s) match no action (MoveAhead one 0.25 m step along "
             f"the heading, RotateLeft/Right +-45 deg, LookUp 30->0, LookDown 0->30): "

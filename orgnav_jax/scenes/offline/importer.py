@@ -187,11 +187,11 @@ def import_to(offline_dir: str | os.PathLike, out: str | os.PathLike, **kwargs
 def format_report(report: dict) -> str:
     """A few human lines about an import."""
     s = report["seconds"]
-    lines = [f"imported {report['num_scenes']} scene(s), {report['states']} states "
-             f"(S padded to {report['padded_states']}), global 7x7x{report['global_dim']}, "
-             f"appearance {NUM_CATEGORIES}x{report['appearance_dim']} from "
-             f"{report['detection_rows']}-row detections; json {s['json']:.1f} s, features "
-             f"{s['features']:.1f} s, expert {s['expert']:.1f} s"]
+    lines = [(f"imported {report['num_scenes']} scene(s), {report['states']} states "
+              f"(S padded to {report['padded_states']}), global 7x7x{report['global_dim']}, "
+              f"appearance {NUM_CATEGORIES}x{report['appearance_dim']} from "
+              f"{report['detection_rows']}-row detections; json {s['json']:.1f} s, features "
+              f"{s['features']:.1f} s, expert {s['expert']:.1f} s")]
     for r in report["scenes"]:
         extra = []
         if r["ignored_edges"]:

@@ -29,10 +29,10 @@ def compare_optimal(authors: np.ndarray, next_state: np.ndarray, dist: np.ndarra
     fine = np.where(done, d == 0, (d > 0) & (succ == d - 1)) & ~no_path
     bad = np.flatnonzero(~fine & ~no_path)
     return {
-        "compared": int(len(s)),
+        "compared": len(s),
         "exact": int((ours[s, c] == a).sum()),
         "on_shortest_path": int(fine.sum()),
-        "mismatches": int(len(bad)),
+        "mismatches": len(bad),
         "no_path_here": int(no_path.sum()),  # authors give an action, we see no path at all
         "examples": [
             {"state": keys[s[i]], "target": CATEGORIES[c[i]], "authors": ACTIONS[a[i]],

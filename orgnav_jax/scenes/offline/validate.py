@@ -85,7 +85,7 @@ def parse_keys(keys: list, source: str) -> np.ndarray:
             pose = parse_state_key(key)
         except ValueError as e:
             raise OfflineFormatError(f"{source}: {e}") from None
-        x, z, rot, hor = pose
+        rot, hor = pose[2:]
         if rot % ROTATION_STEP or not 0 <= rot < ROTATION_STEP * NUM_HEADINGS:
             raise OfflineFormatError(f"{source}: state key {key!r} has rotation {rot}, "
                                      "expected one of 0, 45, ..., 315")
