@@ -22,7 +22,7 @@ class TrainConfig:
     scenes_dir: str | None = None     # or a saved / imported SceneSet directory
     scene_seed: int = 0
     # model
-    model: str = "baseline"           # baseline | we (| org | org_released | dsp)
+    model: str = "baseline"           # baseline | we | org | org_released | dsp
     glob_channels: int = 16
     action_embed: int = 10
     fuse_channels: int = 16
@@ -89,8 +89,8 @@ PRESETS: dict[str, dict] = {
     "paper": dict(scene_preset="paper", glob_channels=64, fuse_channels=64, hidden=512,
                   dropout=0.25, lr=1e-4, run_dir="runs/baseline-paper"),
     # For tests: the tiny scene set, a short budget.
-    "tiny": dict(scene_preset="tiny", total_env_steps=200_000, updates_per_chunk=10,
-                 eval_every_chunks=4, eval_episodes_per_room_type=20, run_dir="runs/tiny"),
+    "tiny": dict(scene_preset="tiny", total_env_steps=400_000, updates_per_chunk=10,
+                 eval_every_chunks=8, run_dir="runs/tiny"),
 }
 
 

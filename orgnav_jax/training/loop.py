@@ -11,6 +11,8 @@ with the same parameters an uninterrupted run reaches (on the same machine).
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import json
 import math
 import sys
@@ -28,6 +30,21 @@ from orgnav_jax.training.checkpoints import RunCheckpoints, write_config
 from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.training.policy import model_policy, scenes_for
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
+
+
+def compute_config(cfg: TrainConfig) -> TrainConfig:
+    """cfg without the fields that do not change the jitted computation."""
+    return dataclasses.replace(cfg, run_dir="", total_env_steps=1, eval_every_chunks=1,
+                               eval_episodes_per_room_type=1, checkpoint_every_chunks=1,
+                               keep_checkpoints=1, seed=0)
+
+
+@functools.lru_cache(maxsize=8)
+def cached_train_chunk(cfg: TrainConfig, model):
+    """(optimizer, jitted train chunk), shared by runs in one process that differ only in
+    seed, budget or run directory (so they compile once)."""
+    optimizer = make_optimizer(cfg)
+    return optimizer, make_train_chunk(cfg, model, optimizer)
 
 
 class NonFiniteLoss(RuntimeError):
@@ -92,18 +109,17 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     val_episodes = sample_episodes(val_scenes, cfg.eval_episodes_per_room_type, seed=0,
                                    split="val")
     model = build_model(cfg, train_scenes)
-    optimizer = make_optimizer(cfg)
+    optimizer, train_chunk = cached_train_chunk(compute_config(cfg), model)
     runner = init_runner(cfg, model, optimizer, train_scenes, jax.random.PRNGKey(cfg.seed))
     ckpt = RunCheckpoints(run_dir, cfg.keep_checkpoints)
     log = MetricsLog(run_dir)
-    best = {"spl": -1.0, "success": -1.0}
+    best = {"success": -1.0, "spl": -1.0}
     chunk = 0
     if resume and ckpt.latest_step() is not None:
         runner, meta = ckpt.restore(runner)
         chunk, best = meta["chunk"], meta["best"]
     num_chunks = math.ceil(cfg.num_updates / cfg.updates_per_chunk)
     steps_per_chunk = cfg.updates_per_chunk * cfg.steps_per_update
-    train_chunk = make_train_chunk(cfg, model, optimizer)
 
     bar = tqdm(total=num_chunks * steps_per_chunk, initial=chunk * steps_per_chunk,
                unit="step", unit_scale=True, desc=f"train {cfg.model}", disable=not progress,
@@ -134,7 +150,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
         if chunk % cfg.eval_every_chunks == 0 or last:
             val = validate(model, runner.params, val_scenes, val_episodes)
             log.write("val", env_steps, val)
-            if (val["spl"], val["success"]) > (best["spl"], best["success"]):
+            if (val["success"], val["spl"]) > (best["success"], best["spl"]):
                 best = {"spl": val["spl"], "success": val["success"], "env_steps": env_steps}
                 ckpt.save(env_steps, runner, {"chunk": chunk, "val": val}, best=True)
         if chunk % cfg.checkpoint_every_chunks == 0 or last:
