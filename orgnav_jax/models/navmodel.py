@@ -15,6 +15,7 @@ import jax.numpy as jnp
 
 from orgnav_jax.constants import IMAGE_SIZE
 from orgnav_jax.models.encoders import BaselineEncoder, WordEmbeddingEncoder
+from orgnav_jax.models.org import ORGEncoder, ReleasedORGEncoder, dsp_from_scenes
 from orgnav_jax.models.trunk import Trunk
 from orgnav_jax.scenes.features import gather_features
 
@@ -51,6 +52,9 @@ class NavModel(nn.Module):
 ENCODERS: dict[str, Callable] = {
     "baseline": lambda cfg, scenes: BaselineEncoder(),
     "we": lambda cfg, scenes: WordEmbeddingEncoder(),
+    "org": lambda cfg, scenes: ORGEncoder(),
+    "org_released": lambda cfg, scenes: ReleasedORGEncoder(),
+    "dsp": lambda cfg, scenes: dsp_from_scenes(scenes),
 }
 
 

@@ -1,0 +1,137 @@
+"""Object relation graph encoders: the paper's ORG, the authors' released form, and D-SP.
+
+All map (app (B, C, d), box (B, C, 4) in [0, 1], conf (B, C), target (B, C)) to
+(B, C, 49), like encoders.BaselineEncoder. 1x1 convolutions are written as Dense.
+
+ORGEncoder (paper, Sec. 3.2), per sample, X = [box, conf, target] (C, 6), F = app (C, d):
+    Z    = ReLU(A X W)            A (C, C) learned adjacency, W (6, C): Z is (C, C)
+    F^   = ReLU(Z F)              parameter-free graph attention: (C, d)
+    maps = Dense_49([F^, X])      weights shared across categories: (C, 49)
+Z's rows index the attending category, its columns (W's outputs) the attended one, so a
+relabelling of the categories by a permutation P maps A -> P A P^T and W -> W P^T.
+
+ReleasedORGEncoder (authors' code): relation R (C, C) computed per step from X
+(6 -> C, then four C -> C ReLU layers); F^ = R^T F; [F^, X] -> Dense 128 ReLU -> Dense 49.
+
+DSPEncoder (the paper's D-SP): a GCN over a FIXED prior graph from co-occurrence
+statistics of the training rooms (cooccurrence_adjacency):
+    H_0 = [F, X];  H_{l+1} = ReLU(A_hat H_l W_l);  maps = Dense_49(H_L).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from orgnav_jax.models.encoders import MAP_CELLS, location_features
+
+
+def adjacency_init(noise: float = 0.0):
+    """Initialiser for a (C, C) adjacency: identity plus N(0, noise^2) entries. At the start
+    every category attends to its own features only (no noise by default: W is random, so
+    no symmetry needs breaking, and every off-diagonal entry of a trained A is learned)."""
+    def init(key, shape, dtype=jnp.float32):
+        if len(shape) != 2 or shape[0] != shape[1]:
+            raise ValueError(f"adjacency must be square (C, C), got shape {shape}")
+        return (jnp.eye(shape[0], dtype=dtype)
+                + noise * jax.random.normal(key, shape, dtype))
+    return init
+
+
+class ORGEncoder(nn.Module):
+    """The paper's ORG: Z = ReLU(A X W) (B, C, C); F^ = ReLU(Z F) (B, C, d);
+    Dense 49 over [F^, X] per category. Parameters: `adjacency` (C, C), `embed_W` (6, C),
+    `to_map`."""
+    adjacency_noise: float = 0.0
+
+    @nn.compact
+    def __call__(self, app, box, conf, target, train: bool = False):
+        C = app.shape[-2]
+        x = location_features(box, conf, target)                     # (B, C, 6)
+        A = self.param("adjacency", adjacency_init(self.adjacency_noise), (C, C))
+        xw = nn.Dense(C, use_bias=False, name="embed_W")(x)          # X W: (B, C, C)
+        z = nn.relu(jnp.einsum("ij,bjk->bik", A, xw))                # Z:   (B, C, C)
+        f_hat = nn.relu(jnp.einsum("bik,bkd->bid", z, app))          # F^:  (B, C, d)
+        h = jnp.concatenate([f_hat, x], axis=-1)
+        return nn.Dense(MAP_CELLS, name="to_map")(h)
+
+
+class ReleasedORGEncoder(nn.Module):
+    """The authors' release: R (B, C, C) = MLP of X (6 -> C, then four C -> C, ReLU after
+    each); F^ = R^T F (B, C, d); [F^, X] -> Dense 128 ReLU -> Dense 49.
+
+    alternate=True applies the C -> C layers alternately over the category axis and the
+    feature axis (transposing between layers, as the release does as far as we know), so
+    R mixes information across categories; False applies all of them over the last axis."""
+    hidden: int = 128
+    alternate: bool = True
+
+    @nn.compact
+    def __call__(self, app, box, conf, target, train: bool = False):
+        C = app.shape[-2]
+        x = location_features(box, conf, target)                     # (B, C, 6)
+        r = nn.relu(nn.Dense(C, name="relation_1")(x))               # (B, C, C)
+        for i in range(2, 6):
+            transpose = self.alternate and i % 2 == 0
+            if transpose:
+                r = jnp.swapaxes(r, -1, -2)
+            r = nn.relu(nn.Dense(C, name=f"relation_{i}")(r))
+            if transpose:
+                r = jnp.swapaxes(r, -1, -2)
+        f_hat = jnp.einsum("bij,bid->bjd", r, app)                   # R^T F: (B, C, d)
+        h = jnp.concatenate([f_hat, x], axis=-1)
+        h = nn.relu(nn.Dense(self.hidden, name="hidden")(h))
+        return nn.Dense(MAP_CELLS, name="to_map")(h)
+
+
+def cooccurrence_adjacency(present: np.ndarray) -> np.ndarray:
+    """(N, C) presence of each category in each training room -> (C, C) prior graph.
+
+    M = P^T P counts rooms holding both categories; the edge weight is the normalised
+    co-occurrence (Ochiai / cosine) M_ij / sqrt(M_ii M_jj) off the diagonal (0 where a
+    category never occurs); then self-loops and symmetric normalisation:
+    A_hat = D^-1/2 (A + I) D^-1/2 with D the row sums of A + I. Symmetric, >= 0."""
+    p = np.asarray(present, dtype=np.float64)
+    if p.ndim != 2:
+        raise ValueError(f"present must be (N, C), got shape {p.shape}")
+    m = p.T @ p
+    occ = np.sqrt(np.diag(m))
+    denom = np.outer(occ, occ)
+    a = np.divide(m, denom, out=np.zeros_like(m), where=denom > 0)
+    np.fill_diagonal(a, 0.0)
+    a = a + np.eye(a.shape[0])
+    d = 1.0 / np.sqrt(a.sum(1))
+    return (a * d[:, None] * d[None, :]).astype(np.float32)
+
+
+def as_static_matrix(a: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    """A (C, C) array as a hashable tuple of tuples (a module attribute)."""
+    return tuple(tuple(float(v) for v in row) for row in np.asarray(a))
+
+
+class DSPEncoder(nn.Module):
+    """D-SP: GCN layers H <- ReLU(A_hat H W) over the fixed prior graph `adjacency`
+    (C x C, hashable tuple of tuples) on nodes [F, X] (B, C, d + 6), then Dense 49."""
+    adjacency: tuple[tuple[float, ...], ...]
+    features: Sequence[int] = (64, 64)
+
+    @nn.compact
+    def __call__(self, app, box, conf, target, train: bool = False):
+        A = jnp.asarray(self.adjacency, jnp.float32)
+        C = app.shape[-2]
+        if A.shape != (C, C):
+            raise ValueError(f"D-SP adjacency is {A.shape}, inputs have {C} categories")
+        h = jnp.concatenate([app, location_features(box, conf, target)], axis=-1)
+        for i, width in enumerate(self.features):
+            h = nn.Dense(width, name=f"gcn_{i}")(h)                  # H W
+            h = nn.relu(jnp.einsum("ij,bjk->bik", A, h))             # A_hat H W
+        return nn.Dense(MAP_CELLS, name="to_map")(h)
+
+
+def dsp_from_scenes(scenes) -> DSPEncoder:
+    """A DSPEncoder whose prior graph comes from `scenes.present` (the training rooms)."""
+    return DSPEncoder(as_static_matrix(cooccurrence_adjacency(np.asarray(scenes.present))))

@@ -1,0 +1,244 @@
+"""ORG / released ORG / D-SP encoders, the adjacency picture, and trial-driven IL masks."""
+
+from __future__ import annotations
+
+import functools
+import math
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from orgnav_jax import constants as K
+from orgnav_jax import env
+from orgnav_jax.models import ModelInputs, build_model, init_params
+from orgnav_jax.models.org import (
+    DSPEncoder, ORGEncoder, ReleasedORGEncoder, as_static_matrix, cooccurrence_adjacency)
+from orgnav_jax.plots import anchor_pair_report, find_adjacency, plot_adjacency
+from orgnav_jax.training.config import get_config
+from orgnav_jax.training.losses import il_mask, imitation_loss
+
+C, D, B = K.NUM_CATEGORIES, 8, 3
+
+
+def _inputs(seed, batch=B, d=D):
+    """Random detections (numpy: no per-op compiles) -> (app, box, conf, target)."""
+    rng = np.random.default_rng(seed)
+    conf = (rng.random((batch, C)) * (rng.random((batch, C)) > 0.4)).astype(np.float32)
+    det = (conf > 0)[..., None]
+    app = (np.maximum(rng.standard_normal((batch, C, d)), 0) * det).astype(np.float32)
+    box = (rng.random((batch, C, 4)) * det).astype(np.float32)
+    target = np.eye(C, dtype=np.float32)[np.arange(batch) % C]
+    return app, box, conf, target
+
+
+def _fake_scenes(n=6, d=D, g=5):
+    rng = np.random.default_rng(0)
+    return SimpleNamespace(present=rng.random((n, C)) < 0.5, appearance_dim=d, global_dim=g)
+
+
+ENCODER_MODULES = {
+    "org": ORGEncoder(),
+    "org_released": ReleasedORGEncoder(),
+    "dsp": DSPEncoder(as_static_matrix(cooccurrence_adjacency(_fake_scenes().present))),
+}
+
+
+@functools.cache
+def _compiled(name):
+    """(jitted init, jitted apply) of ENCODER_MODULES[name], shared by the tests."""
+    enc = ENCODER_MODULES[name]
+    return jax.jit(enc.init), jax.jit(enc.apply)
+
+
+def _init(name, seed=1):
+    return _compiled(name)[0](jax.random.PRNGKey(seed), *_inputs(0))
+
+
+@pytest.mark.parametrize("name", sorted(ENCODER_MODULES))
+def test_encoder_output_shape(name):
+    out = _compiled(name)[1](_init(name), *_inputs(0))
+    assert out.shape == (B, C, 49) and np.isfinite(np.asarray(out)).all()
+
+
+@pytest.mark.parametrize("name", ["org", "org_released", "dsp"])
+def test_navmodel_with_each_encoder(name):
+    """build_model / init_params / apply with each encoder (shapes only: traced, not run)."""
+    scenes = _fake_scenes()
+    model = build_model(get_config("tiny", model=name), scenes)
+    params = jax.eval_shape(lambda k: init_params(model, k, scenes), jax.random.PRNGKey(0))
+    app, box, conf, target = _inputs(2, batch=2)
+    inputs = ModelInputs(np.ones((2, 7, 7, scenes.global_dim), np.float32), app, box, conf,
+                         target, np.eye(K.NUM_ACTIONS, dtype=np.float32)[[0, 3]])
+    carry0 = model.initial_carry(2)
+    logits, value, _, h = jax.eval_shape(model.apply, params, inputs, carry0)
+    assert logits.shape == (2, K.NUM_ACTIONS) and value.shape == (2,)
+    assert h.shape == (2, get_config("tiny").hidden)
+    enc = params["params"]["encoder"]
+    assert ("adjacency" in enc) == (name == "org")
+    if name == "org":
+        assert enc["adjacency"].shape == (C, C)
+
+
+def test_org_permutation_equivariance():
+    """Relabelling the categories by P (inputs, A -> P A P^T, W's category columns ->
+    W P^T) permutes the output rows."""
+    params = _init("org")
+    params["params"]["adjacency"] = jnp.asarray(
+        np.eye(C) + 0.3 * np.random.default_rng(4).standard_normal((C, C)), jnp.float32)
+    x = _inputs(3)
+    perm = np.random.default_rng(1).permutation(C)
+    p = jax.tree_util.tree_map(lambda a: a, params)
+    p["params"]["adjacency"] = params["params"]["adjacency"][perm][:, perm]
+    p["params"]["embed_W"]["kernel"] = params["params"]["embed_W"]["kernel"][:, perm]
+    apply = _compiled("org")[1]
+    out = apply(params, *x)
+    out_p = apply(p, *(a[:, perm] for a in x))
+    np.testing.assert_allclose(np.asarray(out_p), np.asarray(out)[:, perm],
+                               rtol=1e-5, atol=1e-5)
+    # and A matters: a different (unpermuted) A changes the output
+    q = jax.tree_util.tree_map(lambda a: a, params)
+    q["params"]["adjacency"] = params["params"]["adjacency"][perm]
+    assert not np.allclose(np.asarray(apply(q, *x)), np.asarray(out), atol=1e-5)
+
+
+def test_dsp_permutation_equivariance():
+    """Permuting the inputs and the prior graph (P A P^T) permutes the D-SP output rows."""
+    A = cooccurrence_adjacency(_fake_scenes().present)
+    perm = np.random.default_rng(2).permutation(C)
+    x = _inputs(5)
+    params = _init("dsp")
+    enc_p = DSPEncoder(as_static_matrix(A[perm][:, perm]))
+    out_p = jax.jit(enc_p.apply)(params, *(a[:, perm] for a in x))
+    out = _compiled("dsp")[1](params, *x)
+    np.testing.assert_allclose(np.asarray(out_p), np.asarray(out)[:, perm],
+                               rtol=1e-5, atol=1e-5)
+
+
+def test_gradients_reach_the_adjacency():
+    enc, x = ENCODER_MODULES["org"], _inputs(7)
+    params = _init("org")
+
+    def loss(p):
+        return (enc.apply(p, *x) ** 2).mean()
+
+    grads = jax.jit(jax.grad(loss))(params)
+    g = find_adjacency({"params": {"encoder": grads["params"]}})    # as inside a NavModel
+    assert g.shape == (C, C) and np.isfinite(g).all()
+    assert np.abs(g).max() > 0
+    assert np.count_nonzero(g - np.diag(np.diag(g))) > 0   # off-diagonal entries too
+
+
+def test_cooccurrence_adjacency_from_hand_made_presence():
+    present = np.zeros((4, C), bool)
+    present[:, [0, 1]] = True        # 0 and 1 always together
+    present[:2, 2] = True            # 2 with them in half the rooms
+    present[2:, 3] = True            # 3 never with 2
+    A = cooccurrence_adjacency(present)
+    assert A.shape == (C, C) and A.dtype == np.float32
+    np.testing.assert_allclose(A, A.T)
+    assert (A >= 0).all()
+    assert A[2, 3] == 0 and A[0, 3] > 0
+    assert A[0, 1] > A[0, 2] > 0     # always together > sometimes together
+    assert (A[4:, :4] == 0).all()    # absent categories: only their self-loop
+    np.testing.assert_allclose(np.diag(A)[4:], 1.0)
+    # the un-normalised graph before D^-1/2 (A + I) D^-1/2: recover it
+    d = 1.0 / np.diag(A)             # diag(A_hat) = 1 / D_ii
+    raw = A * np.sqrt(np.outer(d, d)) - np.eye(C)
+    np.testing.assert_allclose(raw[0, 1], 1.0, atol=1e-6)
+    np.testing.assert_allclose(raw[0, 2], 2 / math.sqrt(4 * 2), atol=1e-6)
+
+
+def test_il_mask_modes_on_hand_made_deadlocks():
+    deadlock = jnp.array([[0, 1], [1, 0], [0, 0], [1, 1]], bool)
+    failed = jnp.array([[0, 1], [0, 0], [0, 0], [1, 0]], bool)
+    np.testing.assert_array_equal(il_mask("deadlock", deadlock, failed), deadlock.astype(float))
+    np.testing.assert_array_equal(il_mask("failed", deadlock, failed), failed.astype(float))
+    np.testing.assert_array_equal(il_mask("all", deadlock, failed), np.ones((4, 2)))
+    np.testing.assert_array_equal(il_mask("none", deadlock, failed), np.zeros((4, 2)))
+
+
+def test_il_mask_is_the_deadlock_steps_of_an_episode(tiny_scenes):
+    """A hand-chosen episode: a failed MoveAhead, then rotations back into visited states."""
+    train = tiny_scenes.split_view("train").to_device()
+    params = env.EnvParams()
+    n = 0
+    nxt = np.asarray(train.next_state)
+    count = int(train.state_count[n])
+    start = int(np.flatnonzero(nxt[n, :count, K.MOVE_AHEAD] == np.arange(count))[0])
+    target = int(np.flatnonzero(np.asarray(train.targets[n]))[0])
+    st = env.start_episode(jnp.int32(n), jnp.int32(start), jnp.int32(target), train, params)
+    obs = env.observe(st, train)
+    actions = [K.MOVE_AHEAD, K.ROTATE_LEFT, K.ROTATE_RIGHT, K.ROTATE_RIGHT, K.ROTATE_LEFT]
+    deadlock, failed, states = [obs.deadlock], [st.last_failed], [int(st.state)]
+    step = jax.jit(env.step_env, static_argnums=3)
+    for a in actions:
+        obs, st, _, done, _ = step(st, jnp.int32(a), train, params)
+        assert not bool(done)
+        deadlock.append(obs.deadlock)
+        failed.append(st.last_failed)
+        states.append(int(st.state))
+    # obs t: 0 start, 1 after the failed move, 2 new heading, 3 back at start,
+    # 4 the other heading (new), 5 back at start again
+    expected = np.array([0, 1, 0, 1, 0, 1], float)
+    # independent check: a step is a deadlock iff its state was visited before
+    np.testing.assert_array_equal(expected, [s in states[:t] for t, s in enumerate(states)])
+    deadlock = jnp.stack(deadlock)[:, None]          # (T, N=1)
+    failed = jnp.stack(failed)[:, None]
+    np.testing.assert_array_equal(np.asarray(il_mask("deadlock", deadlock, failed))[:, 0],
+                                  expected)
+    np.testing.assert_array_equal(np.asarray(il_mask("failed", deadlock, failed))[:, 0],
+                                  [0, 1, 0, 0, 0, 0])
+
+
+def test_imitation_loss_equals_hand_computed_value():
+    logits = jnp.array([[[0.0] * 6, [2.0, 0, 0, 0, 0, 0]],
+                        [[1.0, 1, 1, 1, 1, math.log(2)], [5.0, 0, 0, 0, 0, 0]]])
+    expert = jnp.array([[3, 0], [5, -1]])            # -1 = no expert action: never counted
+    mask = jnp.array([[1.0, 1.0], [1.0, 1.0]])
+    loss, steps = imitation_loss(logits, expert, mask)
+    ce = [math.log(6),                                # uniform over 6 actions
+          math.log(1 + 5 * math.exp(-2)),             # -log(e^2 / (e^2 + 5))
+          -math.log(2 / (5 * math.e + 2))]            # -log(e^log2 / (5e + 2))
+    assert float(steps) == 3
+    assert float(loss) == pytest.approx(sum(ce) / 3, rel=1e-6)
+    loss1, steps1 = imitation_loss(logits, expert, jnp.array([[0.0, 1.0], [0.0, 0.0]]))
+    assert float(steps1) == 1 and float(loss1) == pytest.approx(ce[1], rel=1e-6)
+    loss0, steps0 = imitation_loss(logits, expert, jnp.zeros((2, 2)))
+    assert float(loss0) == 0.0 and float(steps0) == 0
+
+
+def test_plot_adjacency_writes_png(tmp_path):
+    A = np.eye(C) + 0.05 * np.random.default_rng(0).standard_normal((C, C))
+    path = plot_adjacency(A, tmp_path / "a" / "adj.png", "test")
+    assert path.exists() and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_anchor_pair_report():
+    A = np.zeros((C, C))
+    i, j = K.CATEGORY_INDEX["RemoteControl"], K.CATEGORY_INDEX["Television"]
+    A[i, j] = A[j, i] = 1.0
+    rep = anchor_pair_report(A)
+    by = {p["pair"]: p for p in rep["pairs"]}
+    rt = by["RemoteControl-Television"]
+    assert rt["higher"] and rt["kind"] == "anchor"
+    assert by["CoffeeMachine-Toaster"]["kind"] == "sibling"
+    assert not by["CoffeeMachine-Toaster"]["higher"] and not rep["reflects"]
+    rep2 = anchor_pair_report(A + cooccurrence_anchor_matrix())
+    assert rep2["reflects"] and rep2["anchor"]["higher"] == rep2["anchor"]["n"]
+    assert rep2["anchor"]["p_value"] < 1e-3 and rep2["sibling"]["p_value"] > 0.05
+    noise = np.random.default_rng(3).standard_normal((C, C))
+    assert not anchor_pair_report(noise)["reflects"]
+
+
+def cooccurrence_anchor_matrix():
+    """1 on every (object, anchor) pair of the generator's rules."""
+    from orgnav_jax.scenes.catalog import ANCHORS
+    M = np.zeros((C, C))
+    for o, anchors in ANCHORS.items():
+        for a in anchors:
+            i, j = K.CATEGORY_INDEX[o], K.CATEGORY_INDEX[a]
+            M[i, j] = M[j, i] = 1
+    return M
