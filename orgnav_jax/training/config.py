@@ -92,6 +92,20 @@ PRESETS: dict[str, dict] = {
     "tiny": dict(scene_preset="tiny", total_env_steps=400_000, updates_per_chunk=10,
                  eval_every_chunks=8, run_dir="runs/tiny"),
 }
+# The rows of the paper's Tables 1 and 2, on the small benchmark (model x imitation).
+TABLE_ROWS: dict[str, dict] = {
+    "baseline": dict(model="baseline", il="none"),
+    "we": dict(model="we", il="none"),
+    "il": dict(model="baseline", il="deadlock"),          # Baseline + IL
+    "il_all": dict(model="baseline", il="all"),           # IL on every step (Table 2)
+    "il_failed": dict(model="baseline", il="failed"),     # IL on failed moves only
+    "org": dict(model="org", il="none"),                  # Baseline + ORG
+    "org_il": dict(model="org", il="deadlock"),           # ORG + IL
+    "org_released": dict(model="org_released", il="none"),
+    "dsp": dict(model="dsp", il="none"),                  # D-SP (prior knowledge graph)
+}
+PRESETS.update({name: dict(row, run_dir=f"runs/{name}-small")
+                for name, row in TABLE_ROWS.items()})
 
 
 def get_config(preset: str = "small", **overrides) -> TrainConfig:
