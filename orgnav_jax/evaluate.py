@@ -82,16 +82,17 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> dict:
     args = parser().parse_args(argv)
-    preset, scenes_dir = args.preset, args.scenes
+    preset, scenes_dir, scene_seed = args.preset, args.scenes, 0
     if args.checkpoint:
         from orgnav_jax.training.policy import load_run_policy  # the trainer's checkpoints
         policy, policy_params, run_cfg = load_run_policy(args.checkpoint)
         preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
+        scene_seed = run_cfg.scene_seed
         name = Path(args.checkpoint).name
     else:
         policy, policy_params = POLICIES[args.policy or "random"](), None
         name = args.policy or "random"
-    scenes = split_scenes(preset, scenes_dir, args.split)
+    scenes = split_scenes(preset, scenes_dir, args.split, scene_seed)
     tag = Path(scenes_dir).name if scenes_dir else preset
     out = Path(args.out or f"runs/eval/{name}-{tag}-{args.split}.json")
     episodes, ep_path = episode_set(

@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> dict:
           f"{cfg.rollout_len} steps, {cfg.total_env_steps:,} env steps", flush=True)
     summary = train(cfg, resume=args.resume, progress=not args.quiet)
     summary.pop("runner")
-    print(json.dumps({k: v for k, v in summary.items()}, default=str))
+    print(json.dumps(summary, default=str))
     if not args.no_test:
         summary["test"] = test_best(cfg.run_dir, args.quiet)["overall"]
     return summary
