@@ -65,7 +65,7 @@ def build_model(cfg, scenes) -> NavModel:
         raise ValueError(f"unknown model {cfg.model!r}: expected one of {sorted(ENCODERS)}")
     trunk = Trunk(glob_channels=cfg.glob_channels, action_embed=cfg.action_embed,
                   fuse_channels=cfg.fuse_channels, hidden=cfg.hidden,
-                  lstm_layers=cfg.lstm_layers, dropout=cfg.dropout)
+                  lstm_layers=cfg.lstm_layers)
     return NavModel(ENCODERS[cfg.model](cfg, scenes), trunk)
 
 

@@ -1,6 +1,6 @@
 """The navigation trunk shared by every model (paper / authors' release).
 
-global map (B, 7, 7, G) -> Dense(glob_channels) ReLU [dropout]
+global map (B, 7, 7, G) -> Dense(glob_channels) ReLU
 previous action (B, 6)  -> Dense(action_embed), tiled to 7x7
 category maps (B, C, 49) -> 7x7xC
 concat -> Dense(fuse_channels) ReLU -> flatten (B, 49*fuse) -> LSTM x layers (hidden)
@@ -23,14 +23,12 @@ class Trunk(nn.Module):
     fuse_channels: int = 64
     hidden: int = 512
     lstm_layers: int = 1
-    dropout: float = 0.0
 
     @nn.compact
     def __call__(self, glob, cat_maps, prev_action, carry, train: bool = False):
         """-> (logits (B, 6), value (B,), new carry, lstm output (B, hidden))."""
         B = glob.shape[0]
         g = nn.relu(nn.Dense(self.glob_channels, name="global_1x1")(glob))
-        g = nn.Dropout(self.dropout, deterministic=not train)(g)
         a = nn.Dense(self.action_embed, name="action_embed")(prev_action)
         a = jnp.broadcast_to(a[:, None, None, :], (B, FEATURE_GRID, FEATURE_GRID, a.shape[-1]))
         c = jnp.moveaxis(cat_maps, 1, -1).reshape(B, FEATURE_GRID, FEATURE_GRID, -1)

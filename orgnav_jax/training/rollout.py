@@ -71,8 +71,7 @@ def rollout(model, runner: RunnerState, scenes, env_params: env.EnvParams, lengt
         logits, value, lstm, _ = model.apply(runner.params, model_inputs(scenes, obs), lstm)
         action = jax.random.categorical(k_act, logits).astype(jnp.int32)
         st = runner.env_state
-        target = st.target
-        expert = scenes.expert_action[st.scene, st.state, target].astype(jnp.int32)
+        expert = scenes.expert_action[st.scene, st.state, st.target].astype(jnp.int32)
         _, env_state, reward, done, info = v_step(jax.random.split(k_env, num_envs), st,
                                                    action, scenes, env_params)
         ep_return = runner.ep_return + reward
