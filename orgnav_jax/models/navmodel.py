@@ -3,6 +3,7 @@
     model = build_model(cfg, train_scenes)
     inputs = model_inputs(scenes, obs)                     # batched Observation -> arrays
     logits, value, carry, h = model.apply(params, inputs, carry)
+    gates = model.apply(params, inputs, method=model.embed)    # the non-recurrent part
 """
 
 from __future__ import annotations
@@ -39,10 +40,18 @@ class NavModel(nn.Module):
     encoder: nn.Module
     trunk: Trunk
 
+    def embed(self, inputs: ModelInputs, train: bool = False):
+        """The non-recurrent part: inputs (B, ...) -> first LSTM layer's input gates (B, 4H)."""
+        maps = self.encoder(inputs.app, inputs.box, inputs.conf, inputs.target, train)
+        return self.trunk.embed(inputs.glob, maps, inputs.prev_action)
+
+    def recur(self, gates, carry):
+        """Input gates (B, 4H), carry -> (logits (B, 6), value (B,), carry, LSTM output)."""
+        return self.trunk.recur(gates, carry)
+
     def __call__(self, inputs: ModelInputs, carry, train: bool = False):
         """-> (logits (B, 6), value (B,), new carry, LSTM output (B, hidden))."""
-        maps = self.encoder(inputs.app, inputs.box, inputs.conf, inputs.target, train)
-        return self.trunk(inputs.glob, maps, inputs.prev_action, carry, train)
+        return self.recur(self.embed(inputs, train), carry)
 
     def initial_carry(self, batch: int):
         return self.trunk.initial_carry(batch)

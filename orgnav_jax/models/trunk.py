@@ -6,6 +6,13 @@ category maps (B, C, 49) -> 7x7xC
 concat -> Dense(fuse_channels) ReLU -> flatten (B, 49*fuse) -> LSTM x layers (hidden)
 -> actor Dense(6) logits; critic Dense(64) ReLU Dense(1).
 1x1 convolutions are written as Dense over channels (much faster on CPU under scan).
+
+The trunk is split in two so that training can batch the non-recurrent part over time:
+`embed` maps one step's inputs to the first LSTM layer's input gates (B, 4*hidden) and
+does not depend on earlier steps; `recur` runs the recurrence and the heads. In the loss
+`embed` runs once over all T*N steps of a rollout (large matmuls) and only `recur` is
+scanned. The LSTM cell is flax's (gates i, f, g, o; input kernels lecun-normal, recurrent
+kernels orthogonal per gate, zero bias), with its input projection done in `embed`.
 """
 
 from __future__ import annotations
@@ -17,6 +24,40 @@ import jax.numpy as jnp
 from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS
 
 
+def _per_gate(init):
+    """An initializer for a (in, 4*H) kernel: `init` applied to each (in, H) gate block."""
+    def init_fn(key, shape, dtype=jnp.float32):
+        rows, cols = shape
+        keys = jax.random.split(key, 4)
+        return jnp.concatenate([init(k, (rows, cols // 4), dtype) for k in keys], axis=-1)
+    return init_fn
+
+
+class LSTMGates(nn.Module):
+    """An LSTM layer with its input projection apart: `project(x)` (B, in) -> (B, 4H) input
+    gates; `recur(gates, (c, h))` -> ((c, h), h), each (B, H)."""
+    features: int
+    in_features: int
+
+    def setup(self):
+        H = self.features
+        self.input_kernel = self.param("input_kernel", _per_gate(nn.initializers.lecun_normal()),
+                                       (self.in_features, 4 * H))
+        self.recurrent_kernel = self.param("recurrent_kernel",
+                                           _per_gate(nn.initializers.orthogonal()), (H, 4 * H))
+        self.bias = self.param("bias", nn.initializers.zeros, (4 * H,))
+
+    def project(self, x):
+        return x @ self.input_kernel + self.bias
+
+    def recur(self, gates, carry):
+        c, h = carry
+        gi, gf, gg, go = jnp.split(gates + h @ self.recurrent_kernel, 4, axis=-1)
+        c = nn.sigmoid(gf) * c + nn.sigmoid(gi) * jnp.tanh(gg)
+        h = nn.sigmoid(go) * jnp.tanh(c)
+        return (c, h), h
+
+
 class Trunk(nn.Module):
     glob_channels: int = 64
     action_embed: int = 10
@@ -24,24 +65,44 @@ class Trunk(nn.Module):
     hidden: int = 512
     lstm_layers: int = 1
 
-    @nn.compact
-    def __call__(self, glob, cat_maps, prev_action, carry, train: bool = False):
-        """-> (logits (B, 6), value (B,), new carry, lstm output (B, hidden))."""
+    def setup(self):
+        self.global_1x1 = nn.Dense(self.glob_channels)
+        self.action_dense = nn.Dense(self.action_embed)
+        self.fuse_1x1 = nn.Dense(self.fuse_channels)
+        flat = FEATURE_GRID * FEATURE_GRID * self.fuse_channels
+        self.lstm = [LSTMGates(self.hidden, flat if i == 0 else self.hidden)
+                     for i in range(self.lstm_layers)]
+        self.actor = nn.Dense(NUM_ACTIONS)
+        self.critic_hidden = nn.Dense(64)
+        self.critic = nn.Dense(1)
+
+    def embed(self, glob, cat_maps, prev_action):
+        """(B, 7, 7, G), (B, C, 49), (B, 6) -> first-layer LSTM input gates (B, 4*hidden)."""
         B = glob.shape[0]
-        g = nn.relu(nn.Dense(self.glob_channels, name="global_1x1")(glob))
-        a = nn.Dense(self.action_embed, name="action_embed")(prev_action)
+        g = nn.relu(self.global_1x1(glob))
+        a = self.action_dense(prev_action)
         a = jnp.broadcast_to(a[:, None, None, :], (B, FEATURE_GRID, FEATURE_GRID, a.shape[-1]))
         c = jnp.moveaxis(cat_maps, 1, -1).reshape(B, FEATURE_GRID, FEATURE_GRID, -1)
         x = jnp.concatenate([g, c, a], axis=-1)
-        x = nn.relu(nn.Dense(self.fuse_channels, name="fuse_1x1")(x)).reshape(B, -1)
+        x = nn.relu(self.fuse_1x1(x)).reshape(B, -1)
+        return self.lstm[0].project(x)
+
+    def recur(self, gates, carry):
+        """First-layer input gates (B, 4*hidden), carry -> (logits (B, 6), value (B,),
+        new carry, LSTM output (B, hidden))."""
         new_carry = []
         for i, layer_carry in enumerate(carry):
-            layer_carry, x = nn.OptimizedLSTMCell(self.hidden, name=f"lstm_{i}")(layer_carry, x)
+            if i > 0:
+                gates = self.lstm[i].project(x)
+            layer_carry, x = self.lstm[i].recur(gates, layer_carry)
             new_carry.append(layer_carry)
-        logits = nn.Dense(NUM_ACTIONS, name="actor")(x)
-        v = nn.relu(nn.Dense(64, name="critic_hidden")(x))
-        value = nn.Dense(1, name="critic")(v)[:, 0]
+        logits = self.actor(x)
+        value = self.critic(nn.relu(self.critic_hidden(x)))[:, 0]
         return logits, value, tuple(new_carry), x
+
+    def __call__(self, glob, cat_maps, prev_action, carry):
+        """-> (logits (B, 6), value (B,), new carry, LSTM output (B, hidden))."""
+        return self.recur(self.embed(glob, cat_maps, prev_action), carry)
 
     def initial_carry(self, batch: int):
         """Zero LSTM state: a tuple per layer of (c, h), each (batch, hidden)."""

@@ -12,7 +12,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-CONFIG_VERSION = 1
+CONFIG_VERSION = 2   # 2: the split LSTM trunk (new parameter layout)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -49,14 +49,19 @@ def imitation_loss(logits, expert_action, mask):
 
 def replay(model, params, scenes, traj, carry0):
     """Re-run the model over a trajectory from the carry at its start -> (logits (T,N,6),
-    values (T,N))."""
+    values (T,N)). The non-recurrent part runs once over all T*N steps (large matmuls);
+    only the recurrence is scanned."""
+    T, N = traj.fresh.shape
+    flat_obs = jax.tree_util.tree_map(lambda x: x.reshape((T * N,) + x.shape[2:]), traj.obs)
+    gates = model.apply(params, model_inputs(scenes, flat_obs), method=model.embed)
+
     def body(carry, x):
-        obs, fresh = x
-        carry = reset_carry(carry, fresh)
-        logits, value, carry, _ = model.apply(params, model_inputs(scenes, obs), carry)
+        g, fresh = x
+        logits, value, carry, _ = model.apply(params, g, reset_carry(carry, fresh),
+                                              method=model.recur)
         return carry, (logits, value)
 
-    _, (logits, values) = jax.lax.scan(body, carry0, (traj.obs, traj.fresh))
+    _, (logits, values) = jax.lax.scan(body, carry0, (gates.reshape(T, N, -1), traj.fresh))
     return logits, values
 
 

@@ -61,7 +61,7 @@ def make_train_chunk(cfg: TrainConfig, model, optimizer):
             runner = runner.replace(params=params, opt_state=opt_state,
                                     update=runner.update + 1)
             stats = jax.tree_util.tree_map(jnp.add, stats, ep)
-            return (runner, stats), dict(aux, loss=loss, grad_norm=optax.global_norm(grads))
+            return (runner, stats), dict(aux, loss=loss, grad_norm=optax.tree.norm(grads))
 
         (runner, stats), aux = jax.lax.scan(one_update, (runner, EpisodeStats.zeros()), None,
                                             length=cfg.updates_per_chunk)
