@@ -3,6 +3,8 @@
     python -m orgnav_jax.evaluate --policy random --split test
     python -m orgnav_jax.evaluate --policy expert --split val --preset tiny
     python -m orgnav_jax.evaluate --episodes runs/eval/episodes-small-test.json ...
+    python -m orgnav_jax.evaluate --checkpoint runs/baseline-small --split test
+    python -m orgnav_jax.evaluate --tpn runs/baseline-small/tpn --when all   # TPN-all
 
 The episode set is sampled with --episode-seed (250 per room type) and written next to
 the results, or replayed from --episodes. Results: a JSON file (overall, per room type,
@@ -47,13 +49,13 @@ def episode_set(scenes: SceneSet, split: str, episodes_file: str | None, seed: i
 
 
 def run(policy: evaluation.Policy, policy_params, scenes: SceneSet, episodes, seed: int,
-        show_progress: bool = True) -> dict:
+        show_progress: bool = True, batch_size: int = 1000) -> dict:
     """evaluation.evaluate with a progress bar over episodes."""
     with tqdm(total=len(episodes), desc=f"evaluating {policy.name}", unit="ep",
               disable=not show_progress, file=sys.stderr) as bar:
         return evaluation.evaluate(policy, policy_params, scenes, episodes,
                                    env.EnvParams.evaluation(), seed=seed,
-                                   progress=bar.update)
+                                   batch_size=batch_size, progress=bar.update)
 
 
 def print_results(name: str, result: dict) -> None:
@@ -68,6 +70,8 @@ def parser() -> argparse.ArgumentParser:
     who = ap.add_mutually_exclusive_group()
     who.add_argument("--policy", choices=sorted(POLICIES), default=None)
     who.add_argument("--checkpoint", metavar="RUN_DIR", help="a training run directory")
+    who.add_argument("--tpn", metavar="TPN_RUN_DIR",
+                     help="a stage-2 run: its base model with TPN's test-time updates")
     ap.add_argument("--split", choices=("val", "test"), default="test")
     ap.add_argument("--preset", default="small", help="scene preset (built once, cached)")
     ap.add_argument("--scenes", metavar="DIR", help="a saved SceneSet directory instead")
@@ -76,14 +80,32 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--episodes-per-room-type", type=int, default=EPISODES_PER_ROOM_TYPE)
     ap.add_argument("--seed", type=int, default=0, help="seed of stochastic policies")
     ap.add_argument("--out", metavar="FILE", help="results JSON (default runs/eval/...)")
+    ap.add_argument("--batch-size", type=int, default=None,
+                    help="episodes per jitted batch (default 1000; less for --scope trunk/all "
+                         "so the per-episode fast weights fit in memory)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    from orgnav_jax.tpn.config import TEST_TIME_FIELDS, add_tpn_arguments
+    add_tpn_arguments(ap, TEST_TIME_FIELDS)
     return ap
 
 
 def main(argv: list[str] | None = None) -> dict:
     args = parser().parse_args(argv)
     preset, scenes_dir, scene_seed = args.preset, args.scenes, 0
-    if args.checkpoint:
+    batch_size = args.batch_size
+    from orgnav_jax.tpn.config import tpn_overrides_from_args
+    if tpn_overrides_from_args(args) and not args.tpn:
+        sys.exit("error: test-time TPN options (--tpn-lr, --scope, --when, --target, "
+                 "--deadlock, --cosine-threshold) need --tpn TPN_RUN_DIR")
+    if args.tpn:
+        from orgnav_jax.tpn.policy import default_batch_size, load_tpn_policy
+        policy, policy_params, run_cfg, tpn_cfg = load_tpn_policy(
+            args.tpn, **tpn_overrides_from_args(args))
+        preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
+        scene_seed = run_cfg.scene_seed
+        name = f"{Path(tpn_cfg.base_dir).name}-{policy.name}"
+        batch_size = batch_size or default_batch_size(policy_params["base"], tpn_cfg.scope)
+    elif args.checkpoint:
         from orgnav_jax.training.policy import load_run_policy  # the trainer's checkpoints
         policy, policy_params, run_cfg = load_run_policy(args.checkpoint)
         preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
@@ -98,7 +120,8 @@ def main(argv: list[str] | None = None) -> dict:
     episodes, ep_path = episode_set(
         scenes, args.split, args.episodes, args.episode_seed, args.episodes_per_room_type,
         out.with_name(f"episodes-{tag}-{args.split}-seed{args.episode_seed}.json"))
-    result = run(policy, policy_params, scenes, episodes, args.seed, not args.quiet)
+    result = run(policy, policy_params, scenes, episodes, args.seed, not args.quiet,
+                 batch_size or 1000)
     result.update({"policy": name, "split": args.split, "scenes": tag,
                    "episode_file": str(ep_path)})
     out.parent.mkdir(parents=True, exist_ok=True)

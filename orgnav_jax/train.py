@@ -3,11 +3,17 @@
     python -m orgnav_jax.train                               # baseline, small benchmark
     python -m orgnav_jax.train --preset small --model we --run-dir runs/we
     python -m orgnav_jax.train --run-dir runs/baseline-small --resume
+    python -m orgnav_jax.train --stage tpn --base runs/baseline-small   # stage 2: TPN
 
 With no arguments it builds (or reuses) the small synthetic benchmark, trains the
 Baseline for the default budget, evaluates the best-on-val checkpoint on the test split
 (250 episodes per room type) and prints the Table-1-style row. Every TrainConfig field is
 an option; see --help.
+
+`--stage tpn --base RUN_DIR` trains the tentative policy network on the frozen model of a
+finished run (stage 2; by default in RUN_DIR/tpn), then evaluates the model with TPN's
+test-time updates on the test split. Its options are the TPNConfig fields: see
+`python -m orgnav_jax.train --stage tpn --help`.
 """
 
 from __future__ import annotations
@@ -25,6 +31,8 @@ from orgnav_jax.training.config import (
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m orgnav_jax.train", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--stage", choices=("nav", "tpn"), default="nav",
+                    help="nav: train a navigation model (stage 1); tpn: stage 2 (see above)")
     ap.add_argument("--preset", default="small", choices=sorted(PRESETS))
     ap.add_argument("--resume", action="store_true",
                     help="continue the run in --run-dir from its latest checkpoint")
@@ -32,6 +40,51 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     add_config_arguments(ap)
     return ap
+
+
+def tpn_parser() -> argparse.ArgumentParser:
+    from orgnav_jax.tpn.config import add_tpn_arguments
+    ap = argparse.ArgumentParser(prog="python -m orgnav_jax.train --stage tpn",
+                                 description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--stage", choices=("nav", "tpn"), default="tpn")
+    ap.add_argument("--resume", action="store_true",
+                    help="continue the TPN run in --run-dir from its latest checkpoint")
+    ap.add_argument("--no-test", action="store_true", help="skip the final test evaluation")
+    ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_tpn_arguments(ap)
+    return ap
+
+
+def main_tpn(argv: list[str]) -> dict:
+    """Stage 2: train the TPN on a finished run, then evaluate with test-time updates."""
+    from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config, tpn_overrides_from_args
+    args = tpn_parser().parse_args(argv)
+    fields = tpn_overrides_from_args(args)
+    try:
+        if args.resume and "run_dir" in fields and not (set(fields) - {"run_dir"}):
+            cfg = load_tpn_config(fields["run_dir"])
+        else:
+            if not fields.get("base_dir"):
+                raise ValueError("--stage tpn needs --base RUN_DIR (a finished training run)")
+            if not (Path(fields["base_dir"]) / "config.json").exists():
+                raise FileNotFoundError(f"--base {fields['base_dir']}: no config.json there; "
+                                        "not a training run directory")
+            cfg = get_tpn_config(**fields)
+    except (ValueError, FileNotFoundError) as err:
+        sys.exit(f"error: {err}")
+    from orgnav_jax.tpn.stage2 import train_tpn
+    print(f"TPN run {cfg.run_dir}: base {cfg.base_dir}, {cfg.num_envs} episodes x "
+          f"{cfg.max_steps} steps per update, {cfg.total_episodes:,} episodes, deadlock "
+          f"detector {cfg.deadlock}", flush=True)
+    summary = train_tpn(cfg, resume=args.resume, progress=not args.quiet)
+    summary.pop("runner")
+    print(json.dumps(summary, default=str))
+    if not args.no_test:
+        out = Path(cfg.run_dir) / "test_results.json"
+        argv = ["--tpn", cfg.run_dir, "--split", "test", "--out", str(out)]
+        summary["test"] = evaluate.main(argv + (["--quiet"] if args.quiet else []))["overall"]
+    return summary
 
 
 def test_best(run_dir: str, quiet: bool = False) -> dict:
@@ -42,6 +95,11 @@ def test_best(run_dir: str, quiet: bool = False) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    stage = argparse.ArgumentParser(add_help=False)
+    stage.add_argument("--stage", choices=("nav", "tpn"), default="nav")
+    if stage.parse_known_args(argv)[0].stage == "tpn":
+        return main_tpn(argv)
     args = parser().parse_args(argv)
     overrides = overrides_from_args(args)
     try:

@@ -36,9 +36,9 @@ def scenes_for(cfg: TrainConfig):
                                                                      cfg.scene_seed)
 
 
-def load_run_policy(run_dir: str | Path, best: bool = True):
-    """-> (Policy, params, config) of a training run (its best-on-val checkpoint, else the
-    latest)."""
+def load_run_model(run_dir: str | Path, best: bool = True):
+    """-> (NavModel, params, config) of a training run (its best-on-val checkpoint, else
+    the latest)."""
     cfg = load_config(run_dir)
     train = scenes_for(cfg).split_view("train")
     model = build_model(cfg, train)
@@ -52,4 +52,10 @@ def load_run_policy(run_dir: str | Path, best: bool = True):
             cfg, model, make_optimizer(cfg), train.to_device(), jax.random.PRNGKey(0)))
         runner, _ = ckpt.restore(runner_like)
         params = runner.params
+    return model, params, cfg
+
+
+def load_run_policy(run_dir: str | Path, best: bool = True):
+    """-> (Policy, params, config) of a training run (see load_run_model)."""
+    model, params, cfg = load_run_model(run_dir, best)
     return model_policy(model, cfg.model), params, cfg

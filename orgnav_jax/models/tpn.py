@@ -1,0 +1,158 @@
+"""Tentative Policy Network (paper Sec. 3.4) and its internal state memory.
+
+    r_t    = h_t + Dense_H(ReLU(Dense_H(h_t)))            h_t: LSTM output (H,)
+    slot i : key r_i, value [r_{i+1}, Dense_E(p_i)]       p_i: base policy probs (6,)
+    read_t = top-k softmax attention of r_t over the complete slots i <= t-1
+    logits = Dense_6(ReLU(LN(Dense_mlp(ReLU(LN(Dense_mlp([r_t, read_t])))))))
+
+TPN.__call__ reads whole episodes (B, T, .) at once with a (T, T) causal mask (training);
+TPNMemory + memory_* functions + TPN.step_logits run it step by step (test time) and give
+the same logits. Slots >= t (the future) and padding are never read.
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from orgnav_jax.constants import NUM_ACTIONS
+
+
+def masked_softmax(scores: jax.Array, mask: jax.Array) -> jax.Array:
+    """(..., K) scores, (..., K) bool -> (..., K) weights; 0 where masked, all 0 when no entry
+    is valid. NaN-free in value and gradient (max over valid entries only, stop-gradient)."""
+    m = jnp.max(jnp.where(mask, scores, -jnp.inf), axis=-1, keepdims=True)
+    m = jax.lax.stop_gradient(jnp.where(jnp.isfinite(m), m, 0.0))
+    e = jnp.where(mask, jnp.exp(jnp.where(mask, scores, m) - m), 0.0)
+    denom = jnp.sum(e, axis=-1, keepdims=True)
+    return e / jnp.where(denom > 0, denom, 1.0)
+
+
+def topk_attention(query, keys, values, valid, k: int) -> jax.Array:
+    """query (..., D), keys (..., M, D), values (..., M, V), valid (..., M) -> (..., V).
+
+    Dot-product scores; the k (clipped to M) highest valid scores are softmaxed, the rest
+    get weight 0; zeros when no slot is valid. Leading dims broadcast (e.g. queries
+    (B, T, D) against keys (B, 1, M, D) with valid (B, T, M)) and nothing is tiled."""
+    M = keys.shape[-2]
+    scores = jnp.einsum("...d,...md->...m", query, keys)
+    scores, valid = jnp.broadcast_arrays(scores, valid)
+    if M == 0:
+        return jnp.zeros(scores.shape[:-1] + values.shape[-1:], values.dtype)
+    _, idx = jax.lax.top_k(jnp.where(valid, scores, -jnp.inf), min(k, M))   # (..., k)
+    w = masked_softmax(jnp.take_along_axis(scores, idx, -1),
+                       jnp.take_along_axis(valid, idx, -1))
+    values = values.reshape((1,) * (idx.ndim + 1 - values.ndim) + values.shape)
+    picked = jnp.take_along_axis(values, idx[..., None], axis=-2)         # (..., k, V)
+    return jnp.einsum("...k,...kv->...v", w, picked)
+
+
+class TPN(nn.Module):
+    """Tentative policy network over LSTM outputs of width `hidden` (= representation width).
+    Parameters: rep_1, rep_2 (representation), prob_embed, head_1/norm_1, head_2/norm_2, out."""
+    hidden: int
+    action_embed: int = 32
+    mlp: int = 256
+    top_k: int = 10
+
+    def setup(self):
+        self.rep_1, self.rep_2 = nn.Dense(self.hidden), nn.Dense(self.hidden)
+        self.prob_embed = nn.Dense(self.action_embed)
+        self.head_1, self.norm_1 = nn.Dense(self.mlp), nn.LayerNorm()
+        self.head_2, self.norm_2 = nn.Dense(self.mlp), nn.LayerNorm()
+        self.out = nn.Dense(NUM_ACTIONS)
+
+    def represent(self, h):
+        """(..., H) LSTM output -> r (..., H), residual MLP."""
+        return h + self.rep_2(nn.relu(self.rep_1(h)))
+
+    def _head(self, r, read):
+        x = jnp.concatenate([r, read], axis=-1)
+        x = nn.relu(self.norm_1(self.head_1(x)))
+        x = nn.relu(self.norm_2(self.head_2(x)))
+        return self.out(x)
+
+    def read_logits(self, r, keys, next_r, probs, valid):
+        """r (B, H), keys (B, M, H), next_r (B, M, H), probs (B, M, 6), valid (B, M)
+        -> logits (B, 6)."""
+        values = jnp.concatenate([next_r, self.prob_embed(probs)], axis=-1)
+        return self._head(r, topk_attention(r, keys, values, valid, self.top_k))
+
+    def __call__(self, h, probs, valid):
+        """Whole episodes: h (B, T, H), probs (B, T, 6), valid (B, T) -> logits (B, T, 6).
+        Step t reads slots i <= t-1 with valid[i] & valid[i+1]: key r_i, value (r_{i+1}, p_i).
+        Slot T-1 has no successor and is never read."""
+        T = h.shape[1]
+        r = self.represent(h)                                            # (B, T, H)
+        next_r = jnp.concatenate([r[:, 1:], jnp.zeros_like(r[:, :1])], axis=1)
+        slot_ok = valid & jnp.concatenate([valid[:, 1:], jnp.zeros_like(valid[:, :1])], 1)
+        causal = jnp.tril(jnp.ones((T, T), bool), k=-1)                  # [t, i]: i < t
+        mask = causal[None] & slot_ok[:, None, :]                        # (B, T, T)
+        values = jnp.concatenate([next_r, self.prob_embed(probs)], axis=-1)
+        read = topk_attention(r, r[:, None], values[:, None], mask, self.top_k)
+        return self._head(r, read)
+
+    def step_logits(self, h, mem: "TPNMemory"):
+        """One test-time step: h (B, H) -> (logits (B, 6), r (B, H), mem with the slot that
+        r completes). Afterwards call memory_record(mem, r, policy probs)."""
+        r = self.represent(h)
+        mem = memory_observe(mem, r)
+        return self.read_logits(r, mem.keys, mem.next_r, mem.probs, memory_valid(mem)), r, mem
+
+
+@struct.dataclass
+class TPNMemory:
+    """Per-env internal memory. keys/next_r (B, M, H), probs (B, M, 6): slots 0..count-1 are
+    complete (r_i, r_{i+1}, p_i); prev_r (B, H), prev_probs (B, 6): the last step acted on
+    (its slot waits for the next r); has_prev (B,) bool; count (B,) int32."""
+    keys: jax.Array
+    next_r: jax.Array
+    probs: jax.Array
+    count: jax.Array
+    prev_r: jax.Array
+    prev_probs: jax.Array
+    has_prev: jax.Array
+
+
+def memory_init(batch: int, size: int, hidden: int) -> TPNMemory:
+    """Empty memory of `size` slots per env."""
+    z = jnp.zeros
+    return TPNMemory(keys=z((batch, size, hidden)), next_r=z((batch, size, hidden)),
+                     probs=z((batch, size, NUM_ACTIONS)), count=z((batch,), jnp.int32),
+                     prev_r=z((batch, hidden)), prev_probs=z((batch, NUM_ACTIONS)),
+                     has_prev=z((batch,), bool))
+
+
+def memory_reset(mem: TPNMemory, fresh: jax.Array) -> TPNMemory:
+    """fresh (B,) bool: those rows forget their episode (count 0, no pending step); stale
+    buffer contents stay but are masked by count."""
+    return mem.replace(count=jnp.where(fresh, 0, mem.count), has_prev=mem.has_prev & ~fresh)
+
+
+def memory_observe(mem: TPNMemory, r: jax.Array) -> TPNMemory:
+    """r (B, H) = r_t: rows with a pending step write slot `count` = (prev_r, r_t, prev_probs)
+    and count += 1. When the buffer is full (count == M) the write is silently dropped: the
+    memory keeps the episode's first M transitions."""
+    B, M = mem.keys.shape[:2]
+    write = mem.has_prev & (mem.count < M)
+    rows, slot = jnp.arange(B), jnp.where(write, mem.count, M)            # M: out of range
+    put = lambda buf, x: buf.at[rows, slot].set(x, mode="drop")
+    return mem.replace(keys=put(mem.keys, mem.prev_r), next_r=put(mem.next_r, r),
+                       probs=put(mem.probs, mem.prev_probs), count=mem.count + write)
+
+
+def memory_record(mem: TPNMemory, r: jax.Array, probs: jax.Array) -> TPNMemory:
+    """After the policy acted at step t: r (B, H) = r_t, probs (B, 6) = p_t become pending."""
+    return mem.replace(prev_r=r, prev_probs=probs, has_prev=jnp.ones_like(mem.has_prev))
+
+
+def memory_valid(mem: TPNMemory) -> jax.Array:
+    """(B, M) bool: slot index < count."""
+    return jnp.arange(mem.keys.shape[1])[None, :] < mem.count[:, None]
+
+
+def tpn_step(model: TPN, params, h: jax.Array, mem: TPNMemory):
+    """Pure form of TPN.step_logits: -> (logits (B, 6), r (B, H), mem)."""
+    return model.apply(params, h, mem, method=TPN.step_logits)

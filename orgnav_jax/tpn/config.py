@@ -1,0 +1,133 @@
+"""TPN configuration: stage-2 training and the test-time update, one frozen dataclass.
+
+    cfg = get_tpn_config(base_dir="runs/baseline-small")     # defaults, run_dir base/tpn
+    cfg = tpn_config_from_args(["--base", "runs/x", "--tpn-lr", "1e-3"])
+Every field is a command-line option (`--deadlock cosine`, `--scope trunk`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+from orgnav_jax.training.config import CONFIG_VERSION
+
+SCOPES = ("actor", "trunk", "all")          # parameters a test-time update changes
+DETECTORS = ("visited", "cosine")           # external memory: visited set or feature match
+WHEN = ("deadlock", "all")                  # which steps update (Table 2: "all")
+TARGETS = ("tpn", "random")                 # update target (Table 2: "random")
+
+
+@dataclasses.dataclass(frozen=True)
+class TPNConfig:
+    base_dir: str = ""                # the trained navigation run (its best-on-val params)
+    # the network (models.tpn.TPN)
+    action_embed: int = 32
+    mlp: int = 256
+    top_k: int = 10
+    # the external memory (deadlock detection)
+    deadlock: str = "visited"         # visited (revisited state or failed move) | cosine
+    cosine_threshold: float = 0.99    # cosine: global feature match with an earlier step
+    signature_dim: int = 64           # cosine: random projection width of the global map
+    # stage 2: the frozen base acts in num_envs training episodes per update
+    act: str = "sample"               # sample | greedy (the base's actions in stage 2)
+    max_steps: int = 100              # stage-2 episode cap (= test-time memory size)
+    num_envs: int = 64
+    lr: float = 3e-4
+    max_grad_norm: float = 10.0
+    total_episodes: int = 40_000
+    updates_per_chunk: int = 10
+    eval_every_chunks: int = 5
+    eval_episodes_per_room_type: int = 50
+    checkpoint_every_chunks: int = 5
+    keep_checkpoints: int = 2
+    seed: int = 0
+    run_dir: str = ""                 # default: <base_dir>/tpn
+    # test time (evaluation with --tpn)
+    tpn_lr: float = 1e-4              # one SGD step per update step
+    scope: str = "actor"              # actor head | trunk (above the encoder) | all
+    when: str = "deadlock"
+    target: str = "tpn"
+
+    @property
+    def num_updates(self) -> int:
+        return max(1, self.total_episodes // self.num_envs)
+
+    def validate(self) -> "TPNConfig":
+        for name, allowed in (("scope", SCOPES), ("deadlock", DETECTORS), ("when", WHEN),
+                              ("target", TARGETS), ("act", ("sample", "greedy"))):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"TPN config field {name!r}: {getattr(self, name)!r}, "
+                                 f"expected one of {list(allowed)}")
+        for f in ("action_embed", "mlp", "top_k", "max_steps", "num_envs", "total_episodes",
+                  "updates_per_chunk", "signature_dim"):
+            if getattr(self, f) < 1:
+                raise ValueError(f"TPN config field {f!r} must be >= 1, got {getattr(self, f)}")
+        if not -1.0 <= self.cosine_threshold <= 1.0:
+            raise ValueError("TPN config field 'cosine_threshold' must lie in [-1, 1]")
+        return self
+
+    def to_json(self) -> str:
+        return json.dumps({"version": CONFIG_VERSION, "stage": "tpn",
+                           **dataclasses.asdict(self)}, indent=1)
+
+
+FIELDS = {f.name for f in dataclasses.fields(TPNConfig)}
+
+
+def get_tpn_config(**fields) -> TPNConfig:
+    """Defaults with fields replaced; run_dir defaults to <base_dir>/tpn."""
+    bad = sorted(set(fields) - FIELDS)
+    if bad:
+        raise ValueError(f"unknown TPN config field(s) {bad}; fields are {sorted(FIELDS)}")
+    cfg = TPNConfig(**fields)
+    if not cfg.run_dir and cfg.base_dir:
+        cfg = dataclasses.replace(cfg, run_dir=str(Path(cfg.base_dir) / "tpn"))
+    return cfg.validate()
+
+
+def is_tpn_run(run_dir: str | Path) -> bool:
+    path = Path(run_dir) / "config.json"
+    return path.exists() and json.loads(path.read_text()).get("stage") == "tpn"
+
+
+def load_tpn_config(run_dir: str | Path) -> TPNConfig:
+    """The TPNConfig saved in a stage-2 run directory; clear errors otherwise."""
+    path = Path(run_dir) / "config.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} not found: {run_dir} is not a TPN run directory")
+    doc = json.loads(path.read_text())
+    if doc.pop("stage", None) != "tpn":
+        raise ValueError(f"{path}: not a TPN (stage 2) run; train one with "
+                         f"`python -m orgnav_jax.train --stage tpn --base RUN_DIR`")
+    version = doc.pop("version", None)
+    if version != CONFIG_VERSION:
+        raise ValueError(f"{path}: config version {version}, this orgnav_jax reads version "
+                         f"{CONFIG_VERSION}")
+    bad = sorted(set(doc) - FIELDS)
+    if bad:
+        raise ValueError(f"{path}: unknown TPN config field(s) {bad}")
+    return TPNConfig(**doc).validate()
+
+
+TEST_TIME_FIELDS = ("tpn_lr", "scope", "when", "target", "deadlock", "cosine_threshold")
+
+
+def add_tpn_arguments(ap: argparse.ArgumentParser, fields=None) -> None:
+    """One --option per TPNConfig field (all, or those named in `fields`); base_dir is
+    --base."""
+    group = ap.add_argument_group("TPN config fields")
+    for f in dataclasses.fields(TPNConfig):
+        if fields is not None and f.name not in fields:
+            continue
+        kind = {int: int, float: float}.get(type(f.default), str)
+        flag = "base" if f.name == "base_dir" else f.name.replace("_", "-")
+        group.add_argument("--" + flag, dest="tpn__" + f.name, type=kind, default=None,
+                           metavar=type(f.default).__name__.upper())
+
+
+def tpn_overrides_from_args(args: argparse.Namespace) -> dict:
+    return {k[len("tpn__"):]: v for k, v in vars(args).items()
+            if k.startswith("tpn__") and v is not None}

@@ -1,0 +1,201 @@
+"""Stage 2: train the TPN on deadlock steps of a frozen navigation model.
+
+Each update, the frozen base acts in `num_envs` fresh training episodes of up to
+`max_steps` steps (no auto-reset, so each row of the batch is one whole episode and the
+TPN's internal memory is exact); the TPN reads that episode's past steps and is trained
+with CE(TPN logits, expert action) on the deadlock steps. The base never changes, so the
+collected data do not depend on the TPN's parameters.
+
+    collect(model, base_params, cfg, scenes, key, num)    -> EpisodeBatch (N, T, ...)
+    tpn_loss(tpn_params, tpn, batch)                      -> (CE, aux)
+    train_tpn(cfg)                                        -> summary (run_dir/checkpoints)
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+from tqdm import tqdm
+
+from orgnav_jax import env
+from orgnav_jax.models import model_inputs
+from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
+from orgnav_jax.tpn.deadlock import detect, detector_init
+from orgnav_jax.tpn.policy import build_tpn, init_tpn_params
+from orgnav_jax.training.checkpoints import RunCheckpoints, write_config
+from orgnav_jax.training.losses import imitation_loss
+from orgnav_jax.training.loop import MetricsLog, NonFiniteLoss
+
+
+@struct.dataclass
+class EpisodeBatch:
+    """N whole episodes of the frozen base, batch-major (N, T, ...)."""
+    h: jax.Array          # (N, T, hidden) LSTM outputs
+    probs: jax.Array      # (N, T, 6) the base's action distribution
+    valid: jax.Array      # (N, T) bool: the episode is still running at step t
+    deadlock: jax.Array   # (N, T) bool: the external memory flags step t
+    expert: jax.Array     # (N, T) int32 expert action (NO_ACTION = -1 where none)
+    success: jax.Array    # (N,) bool: the base reached the target
+
+
+@struct.dataclass
+class TPNRunner:
+    params: Any
+    opt_state: Any
+    key: jax.Array
+    update: jax.Array
+
+
+def collect(model, base_params, cfg: TPNConfig, scenes, key, num: int) -> EpisodeBatch:
+    """The frozen base acts (sampled or greedy, cfg.act) in `num` random episodes of
+    `scenes` for cfg.max_steps steps; finished episodes stay frozen (valid False)."""
+    params = env.EnvParams(max_steps=(cfg.max_steps,) * 4)
+    k_reset, k_act = jax.random.split(key)
+    _, state = jax.vmap(env.reset, in_axes=(0, None, None))(
+        jax.random.split(k_reset, num), scenes, params)
+    v_step = jax.vmap(env.step_env, in_axes=(0, 0, None, None))
+    v_observe = jax.vmap(env.observe, in_axes=(0, None))
+
+    def body(carry, k):
+        state, lstm, running, success, vision, fresh = carry
+        obs = v_observe(state, scenes)
+        inputs = model_inputs(scenes, obs)
+        logits, _, lstm, h = model.apply(base_params, inputs, lstm)
+        action = (jax.random.categorical(k, logits) if cfg.act == "sample"
+                  else jnp.argmax(logits, -1)).astype(jnp.int32)
+        deadlock, vision = detect(cfg, vision, obs.deadlock, inputs.glob, fresh)
+        expert = scenes.expert_action[state.scene, state.state, state.target]
+        _, state2, _, done, info = v_step(state, action, scenes, params)
+        keep = lambda new, old: jnp.where(
+            running.reshape(running.shape + (1,) * (new.ndim - 1)), new, old)
+        state = jax.tree_util.tree_map(keep, state2, state)
+        out = (jax.lax.stop_gradient(h), jax.lax.stop_gradient(jax.nn.softmax(logits)),
+               running, deadlock, expert.astype(jnp.int32))      # the base is frozen
+        success = success | (running & info["success"])
+        return (state, lstm, running & ~done, success, vision, jnp.zeros_like(fresh)), out
+
+    init = (state, model.initial_carry(num), jnp.ones(num, bool), jnp.zeros(num, bool),
+            detector_init(cfg, num, cfg.max_steps), jnp.ones(num, bool))
+    (_, _, _, success, _, _), (h, probs, valid, deadlock, expert) = jax.lax.scan(
+        body, init, jax.random.split(k_act, cfg.max_steps))
+    batch_major = lambda x: jnp.swapaxes(x, 0, 1)
+    return EpisodeBatch(batch_major(h), batch_major(probs), batch_major(valid),
+                        batch_major(deadlock), batch_major(expert), success)
+
+
+def tpn_loss(params, tpn, batch: EpisodeBatch):
+    """Mean CE(TPN logits, expert action) over valid deadlock steps -> (loss, aux with
+    accuracy (argmax == expert) and the number of such steps)."""
+    logits = tpn.apply(params, batch.h, batch.probs, batch.valid)
+    mask = (batch.valid & batch.deadlock).astype(jnp.float32)
+    ce, steps = imitation_loss(logits, batch.expert, mask)
+    hit = (jnp.argmax(logits, -1) == batch.expert) * mask * (batch.expert >= 0)
+    return ce, {"ce": ce, "accuracy": hit.sum() / jnp.maximum(steps, 1.0),
+                "deadlock_steps": steps, "base_success": batch.success.mean()}
+
+
+def make_optimizer(cfg: TPNConfig):
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.lr))
+
+
+def make_tpn_chunk(cfg: TPNConfig, model, tpn, optimizer):
+    """A jitted (runner, base_params, scenes) -> (runner, metrics) of
+    cfg.updates_per_chunk stage-2 updates."""
+    grad_fn = jax.value_and_grad(tpn_loss, has_aux=True)
+
+    @jax.jit
+    def chunk(runner: TPNRunner, base_params, scenes):
+        def one(runner, _):
+            key, k = jax.random.split(runner.key)
+            batch = collect(model, base_params, cfg, scenes, k, cfg.num_envs)
+            (loss, aux), grads = grad_fn(runner.params, tpn, batch)
+            updates, opt_state = optimizer.update(grads, runner.opt_state, runner.params)
+            runner = TPNRunner(optax.apply_updates(runner.params, updates), opt_state, key,
+                               runner.update + 1)
+            return runner, dict(aux, loss=loss)
+
+        runner, aux = jax.lax.scan(one, runner, None, length=cfg.updates_per_chunk)
+        metrics = {k: v.mean() for k, v in aux.items()}
+        metrics["loss_finite"] = jnp.isfinite(aux["loss"]).all()
+        return runner, metrics
+
+    return chunk
+
+
+def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
+              stop_after_chunks: int | None = None) -> dict:
+    """Train (or resume) the TPN of cfg.run_dir on its frozen base -> summary dict.
+    The best-on-val TPN (accuracy on the val episodes' deadlock steps) is kept."""
+    from orgnav_jax.training.policy import load_run_model, scenes_for
+    run_dir = Path(cfg.run_dir)
+    if resume:
+        if load_tpn_config(run_dir) != cfg:
+            raise ValueError(f"--resume: {run_dir}/config.json differs from the requested "
+                             "config; resume with the same options (or none)")
+    elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
+        raise FileExistsError(f"{run_dir} already holds checkpoints: pass --resume to "
+                              "continue it, or choose another --run-dir")
+    model, base_params, nav_cfg = load_run_model(cfg.base_dir)
+    write_config(run_dir, cfg)
+    scenes = scenes_for(nav_cfg)
+    train_scenes = scenes.split_view("train").to_device()
+    val_scenes = scenes.split_view("val").to_device()
+    tpn = build_tpn(nav_cfg, cfg)
+    optimizer = make_optimizer(cfg)
+    k_init, k_run = jax.random.split(jax.random.PRNGKey(cfg.seed))
+    params = init_tpn_params(tpn, nav_cfg, k_init)
+    runner = TPNRunner(params, optimizer.init(params), k_run, jnp.int32(0))
+    chunk_fn = make_tpn_chunk(cfg, model, tpn, optimizer)
+    # the base is frozen: the val episodes are collected once (same for every seed)
+    val_batch = jax.jit(collect, static_argnums=(0, 2, 5))(
+        model, base_params, cfg, val_scenes, jax.random.PRNGKey(2 ** 20),
+        4 * cfg.eval_episodes_per_room_type)
+    val_fn = jax.jit(lambda p: tpn_loss(p, tpn, val_batch)[1])
+    ckpt = RunCheckpoints(run_dir, cfg.keep_checkpoints)
+    log = MetricsLog(run_dir)
+    best, chunk = {"accuracy": -1.0}, 0
+    if resume and ckpt.latest_step() is not None:
+        runner, meta = ckpt.restore(runner)
+        chunk, best = meta["chunk"], meta["best"]
+    num_chunks = math.ceil(cfg.num_updates / cfg.updates_per_chunk)
+    episodes_per_chunk = cfg.updates_per_chunk * cfg.num_envs
+    bar = tqdm(total=num_chunks * episodes_per_chunk, initial=chunk * episodes_per_chunk,
+               unit="ep", desc="train TPN", disable=not progress, file=sys.stderr)
+    t_start = time.perf_counter()
+    while chunk < num_chunks:
+        t0 = time.perf_counter()
+        new_runner, metrics = chunk_fn(runner, base_params, train_scenes)
+        metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        if not metrics.pop("loss_finite"):
+            bar.close()
+            raise NonFiniteLoss(f"non-finite TPN loss in chunk {chunk + 1}; the run stopped "
+                                f"and the last good checkpoint in {run_dir} is kept")
+        runner, chunk = new_runner, chunk + 1
+        episodes = chunk * episodes_per_chunk
+        metrics["episodes_per_s"] = episodes_per_chunk / (time.perf_counter() - t0)
+        log.write("train", episodes, metrics)
+        bar.update(episodes_per_chunk)
+        bar.set_postfix(acc=f"{metrics['accuracy']:.3f}", best_val=f"{best['accuracy']:.3f}")
+        last = chunk == num_chunks
+        if chunk % cfg.eval_every_chunks == 0 or last:
+            val = {k: float(v) for k, v in jax.device_get(val_fn(runner.params)).items()}
+            log.write("val", episodes, val)
+            if val["accuracy"] > best["accuracy"]:
+                best = {"accuracy": val["accuracy"], "ce": val["ce"], "episodes": episodes}
+                ckpt.save(episodes, runner, {"chunk": chunk, "val": val}, best=True)
+        if chunk % cfg.checkpoint_every_chunks == 0 or last:
+            ckpt.save(episodes, runner, {"chunk": chunk, "best": best})
+        if stop_after_chunks is not None and chunk >= stop_after_chunks and not last:
+            break
+    bar.close()
+    return {"run_dir": str(run_dir), "episodes": chunk * episodes_per_chunk, "chunks": chunk,
+            "best_val": best, "wall_s": time.perf_counter() - t_start, "runner": runner}

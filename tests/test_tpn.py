@@ -1,0 +1,209 @@
+"""TPN stage 2 and the test-time update: fast weights, gradients, CLI, resume, errors."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from orgnav_jax import env, evaluate, evaluation
+from orgnav_jax import scenes as scenes_mod
+from orgnav_jax.episodes import sample_episodes
+from orgnav_jax.models import model_inputs
+from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config
+from orgnav_jax.tpn.fast_weights import forward, policy_ce, sgd_step, split_scope
+from orgnav_jax.tpn.policy import build_tpn, init_tpn_params, load_tpn_policy, tpn_policy
+from orgnav_jax.tpn.stage2 import collect, train_tpn, tpn_loss
+from orgnav_jax.training.config import get_config
+from orgnav_jax.training.loop import train
+from orgnav_jax.training.policy import load_run_model, model_policy
+
+
+@pytest.fixture(scope="module")
+def base_run(tmp_path_factory, tiny_scenes):
+    """A briefly trained navigation run on the tiny scenes (untrained-ish weights suffice)."""
+    root = tmp_path_factory.mktemp("tpn")
+    scenes_mod.save(tiny_scenes, root / "scenes")
+    cfg = get_config("tiny", scenes_dir=str(root / "scenes"), num_envs=16, rollout_len=8,
+                     updates_per_chunk=2, total_env_steps=16 * 8 * 2 * 2, eval_every_chunks=1,
+                     eval_episodes_per_room_type=2, checkpoint_every_chunks=1,
+                     run_dir=str(root / "base"))
+    train(cfg, progress=False)
+    return str(root / "base")
+
+
+def tpn_cfg(base_run, run_dir, **kw):
+    fields = dict(base_dir=base_run, num_envs=8, max_steps=16, total_episodes=8 * 2 * 3,
+                  updates_per_chunk=2, eval_every_chunks=1, eval_episodes_per_room_type=2,
+                  checkpoint_every_chunks=1, run_dir=str(run_dir))
+    return get_tpn_config(**{**fields, **kw})
+
+
+@pytest.fixture(scope="module")
+def tpn_run(base_run, tmp_path_factory):
+    cfg = tpn_cfg(base_run, tmp_path_factory.mktemp("tpnrun") / "tpn")
+    train_tpn(cfg, progress=False)
+    return cfg.run_dir
+
+
+@pytest.fixture(scope="module")
+def loaded(base_run):
+    model, params, cfg = load_run_model(base_run)
+    from orgnav_jax.training.policy import scenes_for
+    test = scenes_for(cfg).split_view("test").to_device()
+    return model, params, cfg, test
+
+
+def first_obs(test, num, key=0):
+    params = env.EnvParams.evaluation()
+    _, state = jax.vmap(env.reset, in_axes=(0, None, None))(
+        jax.random.split(jax.random.PRNGKey(key), num), test, params)
+    return jax.vmap(env.observe, in_axes=(0, None))(state, test)
+
+
+def test_one_sgd_step_lowers_the_cross_entropy_of_the_target(loaded):
+    model, params, _, test = loaded
+    obs = first_obs(test, 4)
+    inputs = model_inputs(test, obs)
+    carry = model.initial_carry(4)
+    for scope in ("actor", "trunk", "all"):
+        scoped, rest = split_scope(params, scope)
+        one = lambda t: jax.tree_util.tree_map(lambda x: x[0], t)
+        logits, _, _ = forward(model, scoped, rest, one(inputs), one(carry))
+        target = jnp.argmin(logits)                    # the least likely action
+        stepped = sgd_step(model, scoped, rest, one(inputs), one(carry), target, 1e-2)
+        after, _, _ = forward(model, stepped, rest, one(inputs), one(carry))
+        assert float(policy_ce(after, target)) < float(policy_ce(logits, target)) - 1e-4, scope
+
+
+def test_with_zero_lr_the_tpn_policy_acts_as_the_base_model(loaded, tpn_run):
+    """Fast weights that never move reproduce the trained model's greedy episodes."""
+    model, params, _, test = loaded
+    policy, pparams, _, cfg = load_tpn_policy(tpn_run, tpn_lr=0.0, when="all")
+    episodes = sample_episodes(test, 6, seed=1, split="test")
+    ev = env.EnvParams.evaluation()
+    with_tpn = evaluation.run_episodes(policy, pparams, test, episodes, ev, batch_size=24)
+    base = evaluation.run_episodes(model_policy(model), params, test, episodes, ev,
+                                   batch_size=24)
+    for k in ("success", "path_len", "steps"):
+        np.testing.assert_array_equal(with_tpn[k], base[k])
+
+
+def run_policy_steps(policy, pparams, test, obs, fresh_pattern):
+    """Drive policy.act on fixed observations; fresh_pattern[t] (B,) bool."""
+    carry = policy.init(obs.state.shape[0], pparams)
+    carries = []
+    for t, fresh in enumerate(fresh_pattern):
+        _, carry = policy.act(pparams, carry, obs, jax.random.PRNGKey(t), test,
+                              jnp.asarray(fresh))
+        carries.append(carry)
+    return carries
+
+
+def test_fast_weights_belong_to_one_episode_of_one_environment(loaded, tpn_run):
+    model, params, _, test = loaded
+    policy, pparams, _, cfg = load_tpn_policy(tpn_run, tpn_lr=0.5, when="deadlock",
+                                              scope="actor")
+    obs = first_obs(test, 3)
+    # env 0 is in deadlock at every step, envs 1 and 2 never are
+    obs = obs.replace(deadlock=jnp.array([True, False, False]))
+    base_actor, _ = split_scope(pparams["base"], "actor")
+    T, F = True, False
+    carries = run_policy_steps(policy, pparams, test, obs,
+                               [[T, T, T], [F, F, F], [F, F, F], [T, F, F]])
+    fast = lambda c, b: jax.tree_util.tree_map(lambda x: np.asarray(x[b]), c.fast)
+    same = lambda a, b: all(np.array_equal(x, y) for x, y in zip(
+        jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
+    base_np = jax.tree_util.tree_map(np.asarray, base_actor)
+    # env 0 updated; the others kept the trained weights (no leak across environments)
+    assert not same(fast(carries[2], 0), base_np)
+    assert same(fast(carries[2], 1), base_np) and same(fast(carries[2], 2), base_np)
+    assert [int(u) for u in carries[2].updates] == [3, 0, 0]
+    # a new episode in env 0 starts from the trained weights (no leak across episodes):
+    # after its first step it holds exactly one update from them
+    one_step = run_policy_steps(policy, pparams, test, obs, [[T, T, T]])[0]
+    assert same(fast(carries[3], 0), fast(one_step, 0))
+    assert int(carries[3].updates[0]) == 1
+    # a batch of one gives env 0 the same weights as the batch of three
+    solo = jax.tree_util.tree_map(lambda x: x[:1], obs)
+    solo_carry = run_policy_steps(policy, pparams, test, solo, [[T], [F], [F]])[2]
+    for a, b in zip(jax.tree_util.tree_leaves(fast(carries[2], 0)),
+                    jax.tree_util.tree_leaves(fast(solo_carry, 0))):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_stage2_gradients_reach_the_tpn_parameters_only(loaded, base_run, tmp_path):
+    model, params, nav_cfg, test = loaded
+    cfg = tpn_cfg(base_run, tmp_path / "t", max_steps=12)
+    tpn = build_tpn(nav_cfg, cfg)
+    tpn_params = init_tpn_params(tpn, nav_cfg, jax.random.PRNGKey(0))
+
+    def objective(base_params, tpn_params):
+        batch = collect(model, base_params, cfg, test, jax.random.PRNGKey(1), 16)
+        batch = batch.replace(deadlock=jnp.ones_like(batch.deadlock))  # every step counts
+        return tpn_loss(tpn_params, tpn, batch)[0]
+
+    g_base, g_tpn = jax.grad(objective, argnums=(0, 1))(params, tpn_params)
+    assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree_util.tree_leaves(g_base))
+    norms = [float(jnp.abs(g).max()) for g in jax.tree_util.tree_leaves(g_tpn)]
+    assert all(np.isfinite(norms)) and sum(n > 0 for n in norms) >= len(norms) - 2
+
+
+def test_collect_marks_whole_episodes(loaded, base_run, tmp_path):
+    model, params, nav_cfg, test = loaded
+    cfg = tpn_cfg(base_run, tmp_path / "t", max_steps=20)
+    b = collect(model, params, cfg, test, jax.random.PRNGKey(2), 12)
+    valid = np.asarray(b.valid)
+    assert valid[:, 0].all()
+    # once an episode ends it stays ended
+    assert (np.diff(valid.astype(int), axis=1) <= 0).all()
+    assert b.h.shape == (12, 20, nav_cfg.hidden) and b.probs.shape == (12, 20, 6)
+    np.testing.assert_allclose(np.asarray(b.probs).sum(-1), 1.0, rtol=1e-5)
+
+
+def test_stage2_kill_and_resume_equals_an_uninterrupted_run(base_run, tmp_path):
+    full = train_tpn(tpn_cfg(base_run, tmp_path / "full"), progress=False)
+    cfg = tpn_cfg(base_run, tmp_path / "resumed")
+    train_tpn(cfg, progress=False, stop_after_chunks=1)
+    resumed = train_tpn(cfg, resume=True, progress=False)
+    for a, b in zip(jax.tree_util.tree_leaves(full["runner"].params),
+                    jax.tree_util.tree_leaves(resumed["runner"].params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert full["best_val"] == resumed["best_val"]
+
+
+def test_cli_trains_and_evaluates_with_tpn(base_run, tmp_path, capsys):
+    from orgnav_jax import train as train_cli
+    run_dir = tmp_path / "cli-tpn"
+    summary = train_cli.main(["--stage", "tpn", "--base", base_run, "--run-dir", str(run_dir),
+                              "--num-envs", "8", "--max-steps", "16", "--total-episodes", "32",
+                              "--updates-per-chunk", "2", "--eval-episodes-per-room-type", "2",
+                              "--quiet"])
+    assert load_tpn_config(run_dir).base_dir == base_run
+    saved = json.loads((run_dir / "test_results.json").read_text())
+    assert saved["overall"]["episodes"] == summary["test"]["episodes"] == 1000
+    for variant in (["--when", "all"], ["--target", "random"], ["--deadlock", "cosine"],
+                    ["--scope", "trunk", "--tpn-lr", "1e-3"]):
+        out = tmp_path / f"{variant[1]}.json"
+        res = evaluate.main(["--tpn", str(run_dir), "--split", "test", "--quiet",
+                             "--episodes-per-room-type", "5", "--out", str(out)] + variant)
+        assert res["overall"]["episodes"] == 20 and out.exists()
+
+
+def test_bad_tpn_input_is_a_clear_error(base_run, tpn_run, tmp_path):
+    from orgnav_jax import train as train_cli
+    with pytest.raises(SystemExit, match="--base"):
+        train_cli.main(["--stage", "tpn"])
+    with pytest.raises(SystemExit, match="not a training run"):
+        train_cli.main(["--stage", "tpn", "--base", str(tmp_path / "nothing")])
+    with pytest.raises(SystemExit, match="scope"):
+        train_cli.main(["--stage", "tpn", "--base", base_run, "--scope", "head"])
+    with pytest.raises(SystemExit, match="need --tpn"):
+        evaluate.main(["--checkpoint", base_run, "--when", "all"])
+    with pytest.raises(ValueError, match="not a TPN"):
+        load_tpn_config(base_run)
+    with pytest.raises(FileExistsError, match="--resume"):
+        train_tpn(load_tpn_config(tpn_run), progress=False)
