@@ -3,11 +3,20 @@
     python experiments/run_table.py --rows baseline il org org_il il_all --seeds 0 1 2 \\
         --total-env-steps 1000000 --out experiments/results/table1
 
+    python experiments/run_table.py --rows baseline baseline+tpn org_il org_il+tpn \\
+        org_il+tpn_all org_il+tpn_random --out experiments/results/table2
+
 Each (row, seed) trains in OUT/runs/<row>-s<seed> (skipped when its test results exist,
 resumed when it has checkpoints: rerun the same command after an interruption), is
 evaluated on the test split (best-on-val checkpoint, 250 episodes per room type), and
 the table is rewritten after every run: OUT/results.json (every run) and OUT/table.md
 (mean +- std over seeds). Extra `--FIELD VALUE` options apply to every row.
+
+A row BASE+VARIANT (VARIANT in tpn, tpn_all, tpn_random) uses the run of row BASE (trained
+first if needed), trains its TPN (stage 2) in OUT/runs/BASE-s<seed>/tpn once, and
+evaluates it with that variant of the test-time update (Table 2: "all" updates on every
+step, "random" takes a random action as the target). Baseline+TPN is baseline+tpn; the
+full model (ORG+IL+TPN) is org_il+tpn.
 """
 
 from __future__ import annotations
@@ -24,6 +33,30 @@ from orgnav_jax.training.config import TABLE_ROWS, add_config_arguments, get_con
     overrides_from_args
 
 METRICS = ("success", "spl", "success_L5", "spl_L5")
+# test-time variants of a TPN row (TPNConfig fields)
+TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": "random"}}
+
+
+def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -> dict:
+    """BASE+VARIANT: train (or reuse) the base row and its TPN, evaluate the variant."""
+    from orgnav_jax.tpn.config import get_tpn_config
+    from orgnav_jax.tpn.stage2 import train_tpn
+    base, variant = row.split("+")
+    run_one(base, seed, out, overrides)
+    tpn_dir = out / "runs" / f"{base}-s{seed}" / "tpn"
+    results = tpn_dir / f"test_{variant}.json"
+    if results.exists():
+        return json.loads(results.read_text())["overall"]
+    stage2 = {k: v for k, v in tpn_fields.items() if k != "tpn_lr"}
+    cfg = get_tpn_config(**stage2, base_dir=str(tpn_dir.parent), seed=seed,
+                         run_dir=str(tpn_dir))
+    # trains, continues an interrupted run, or (finished) only reloads it
+    resume = (tpn_dir / "checkpoints").exists() and any((tpn_dir / "checkpoints").iterdir())
+    train_tpn(cfg, resume=resume, progress=sys.stderr.isatty())
+    flags = [f"--{k.replace('_', '-')}={v}" for k, v in TPN_VARIANTS[variant].items()]
+    flags += [f"--tpn-lr={tpn_fields['tpn_lr']}"] if "tpn_lr" in tpn_fields else []
+    return evaluate.main(["--tpn", str(tpn_dir), "--split", "test", "--out", str(results),
+                          "--quiet"] + flags)["overall"]
 
 
 def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
@@ -59,20 +92,28 @@ def write_table(out: Path, results: dict[str, dict[int, dict]]) -> str:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
+    rows = sorted(TABLE_ROWS) + [f"{b}+{v}" for b in sorted(TABLE_ROWS) for v in TPN_VARIANTS]
     ap.add_argument("--rows", nargs="+", default=["baseline", "il", "org", "org_il", "il_all"],
-                    choices=sorted(TABLE_ROWS))
+                    choices=rows, metavar="ROW", help="rows: " + ", ".join(rows))
+    ap.add_argument("--tpn-episodes", type=int, default=None,
+                    help="stage-2 training episodes of TPN rows (TPNConfig.total_episodes)")
+    ap.add_argument("--tpn-lr", type=float, default=None,
+                    help="test-time SGD learning rate of TPN rows (default 1e-4)")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--out", default="experiments/results/table1")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
     overrides = {k: v for k, v in overrides_from_args(args).items()
                  if k not in ("seed", "run_dir")}
+    tpn_fields = {k: v for k, v in (("total_episodes", args.tpn_episodes),
+                                     ("tpn_lr", args.tpn_lr)) if v is not None}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results: dict[str, dict[int, dict]] = {}
     for seed in args.seeds:                     # seed-major: a partial table covers all rows
         for row in args.rows:
-            metrics = run_one(row, seed, out, overrides)
+            metrics = (run_tpn(row, seed, out, overrides, tpn_fields) if "+" in row
+                       else run_one(row, seed, out, overrides))
             results.setdefault(row, {})[seed] = metrics
             print(f"{row} seed {seed}: " + ", ".join(f"{m} {100 * metrics[m]:.1f}"
                                                       for m in METRICS), flush=True)

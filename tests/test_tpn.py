@@ -14,7 +14,7 @@ from orgnav_jax import scenes as scenes_mod
 from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config
-from orgnav_jax.tpn.fast_weights import forward, policy_ce, sgd_step, split_scope
+from orgnav_jax.tpn.fast_weights import policy_ce, sgd_step, split_scope, split_step
 from orgnav_jax.tpn.policy import build_tpn, init_tpn_params, load_tpn_policy, tpn_policy
 from orgnav_jax.tpn.stage2 import collect, train_tpn, tpn_loss
 from orgnav_jax.training.config import get_config
@@ -71,12 +71,16 @@ def test_one_sgd_step_lowers_the_cross_entropy_of_the_target(loaded):
     carry = model.initial_carry(4)
     for scope in ("actor", "trunk", "all"):
         scoped, rest = split_scope(params, scope)
-        one = lambda t: jax.tree_util.tree_map(lambda x: x[0], t)
-        logits, _, _ = forward(model, scoped, rest, one(inputs), one(carry))
+        shared, per_env = split_step(model, scope)
+        features = jax.tree_util.tree_map(lambda x: x[0], shared(params, inputs, carry))
+        logits, _, _ = per_env(scoped, rest, features)
         target = jnp.argmin(logits)                    # the least likely action
-        stepped = sgd_step(model, scoped, rest, one(inputs), one(carry), target, 1e-2)
-        after, _, _ = forward(model, stepped, rest, one(inputs), one(carry))
+        stepped = sgd_step(per_env, scoped, rest, features, target, 1e-2)
+        after, _, _ = per_env(stepped, rest, features)
         assert float(policy_ce(after, target)) < float(policy_ce(logits, target)) - 1e-4, scope
+        # with unchanged weights, one environment's step equals the batched model's
+        full_logits = model.apply(params, inputs, carry)[0][0]
+        np.testing.assert_allclose(np.asarray(logits), np.asarray(full_logits), atol=1e-5)
 
 
 def test_with_zero_lr_the_tpn_policy_acts_as_the_base_model(loaded, tpn_run):

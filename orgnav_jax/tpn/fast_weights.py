@@ -3,17 +3,25 @@
 A scope of the navigation model's variables (the actor head, the trunk above the
 encoder, or all) is split off and copied once per environment; those copies are the only
 parameters a test-time update changes, so an update in one episode never reaches another
-episode or environment. Everything here works on one environment; callers vmap.
+episode or environment.
+
+A step is split in two: `shared` runs, batched, everything the fast weights do not
+touch (for the actor scope: the whole model up to the LSTM output; otherwise nothing),
+and `per_env` runs the rest for one environment with its own fast weights (callers vmap
+it). Only `per_env` is differentiated and re-run after an update.
 
     scoped, rest = split_scope(variables, "actor")        # flat dicts {path tuple: array}
-    logits, carry, h = forward(model, scoped, rest, inputs, carry)      # one env, no batch
-    scoped = sgd_step(model, scoped, rest, inputs, carry, target, lr)   # CE(policy, target)
+    shared, per_env = split_step(model, "actor")
+    features = shared(variables, inputs, carry)                        # batched
+    logits, carry, h = per_env(scoped, rest, features_b)               # one env
+    scoped = sgd_step(per_env, scoped, rest, features_b, target, lr)   # CE(policy, target)
 """
 
 from __future__ import annotations
 
+import functools
+
 import jax
-import jax.numpy as jnp
 from flax import traverse_util
 
 SCOPE_PATHS = {"actor": ("params", "trunk", "actor"),     # the policy head
@@ -40,12 +48,41 @@ def merge_scope(scoped, rest):
     return traverse_util.unflatten_dict({**rest, **scoped})
 
 
-def forward(model, scoped, rest, inputs, carry):
-    """One environment's step with its own fast weights: inputs and carry without a batch
-    axis -> (logits (6,), new carry, LSTM output (hidden,))."""
-    add = lambda t: jax.tree_util.tree_map(lambda x: x[None], t)
-    logits, _, carry, h = model.apply(merge_scope(scoped, rest), add(inputs), add(carry))
-    return logits[0], jax.tree_util.tree_map(lambda x: x[0], carry), h[0]
+def _one(tree):
+    return jax.tree_util.tree_map(lambda x: x[None], tree)
+
+
+def _unbatch(tree):
+    return jax.tree_util.tree_map(lambda x: x[0], tree)
+
+
+@functools.cache
+def split_step(model, scope: str):
+    """-> (shared, per_env) for a NavModel and a scope (see module docstring).
+
+    shared(variables, inputs (B, ...), carry (B, ...)) -> features (B, ...)
+    per_env(scoped, rest, features without the batch axis) -> (logits (6,), carry, h)
+    """
+    if scope == "actor":
+        def shared(variables, inputs, carry):
+            _, _, carry, h = model.apply(variables, inputs, carry)
+            return h, carry
+
+        def per_env(scoped, rest, features):
+            h, carry = features
+            logits = model.apply(merge_scope(scoped, rest), h[None],
+                                 method=lambda m, x: m.trunk.actor(x))
+            return logits[0], carry, h
+    else:
+        def shared(variables, inputs, carry):
+            return inputs, carry
+
+        def per_env(scoped, rest, features):
+            inputs, carry = features
+            logits, _, carry, h = model.apply(merge_scope(scoped, rest), _one(inputs),
+                                              _one(carry))
+            return logits[0], _unbatch(carry), h[0]
+    return shared, per_env
 
 
 def policy_ce(logits, target):
@@ -54,10 +91,9 @@ def policy_ce(logits, target):
     return -jax.nn.log_softmax(logits)[target]
 
 
-def sgd_step(model, scoped, rest, inputs, carry, target, lr):
-    """One SGD step of CE(policy logits, target) on the fast weights (one environment)."""
-    grads = jax.grad(lambda s: policy_ce(forward(model, s, rest, inputs, carry)[0],
-                                         target))(scoped)
+def sgd_step(per_env, scoped, rest, features, target, lr):
+    """One SGD step of CE(policy logits, target) on one environment's fast weights."""
+    grads = jax.grad(lambda s: policy_ce(per_env(s, rest, features)[0], target))(scoped)
     return jax.tree_util.tree_map(lambda p, g: p - lr * g, scoped, grads)
 
 

@@ -26,11 +26,10 @@ from orgnav_jax.constants import NUM_ACTIONS
 from orgnav_jax.env import EnvParams
 from orgnav_jax.evaluation import Policy
 from orgnav_jax.models import model_inputs, reset_carry
-from orgnav_jax.models.tpn import (
-    TPN, memory_init, memory_observe, memory_record, memory_reset, memory_valid)
+from orgnav_jax.models.tpn import TPN, memory_init, memory_record, memory_reset
 from orgnav_jax.tpn.config import TPNConfig, get_tpn_config, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
-from orgnav_jax.tpn.fast_weights import forward, scope_size, sgd_step, split_scope
+from orgnav_jax.tpn.fast_weights import scope_size, sgd_step, split_scope, split_step
 
 
 @struct.dataclass
@@ -52,11 +51,18 @@ def tile(tree, batch: int):
     return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), tree)
 
 
+def _where_rows(mask, new, old):
+    """Per-row select between two pytrees with leading axis B."""
+    return jax.tree_util.tree_map(
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
+
+
 @functools.cache
 def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN") -> Policy:
     """policy_params = {"base": navigation variables, "tpn": TPN variables}."""
-    v_forward = jax.vmap(forward, in_axes=(None, 0, None, 0, 0))
-    v_sgd = jax.vmap(sgd_step, in_axes=(None, 0, None, 0, 0, 0, None))
+    shared, per_env = split_step(model, cfg.scope)
+    v_per_env = jax.vmap(per_env, in_axes=(0, None, 0))
+    v_sgd = jax.vmap(sgd_step, in_axes=(None, 0, None, 0, 0, None))
 
     def init(batch, params):
         scoped, _ = split_scope(params["base"], cfg.scope)
@@ -67,39 +73,27 @@ def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN") -> Policy:
 
     def act(params, carry: TPNCarry, obs, key, scenes, fresh):
         base_scoped, rest = split_scope(params["base"], cfg.scope)
-        batch = fresh.shape[0]
-        keep = lambda new, old: jnp.where(
-            fresh.reshape((batch,) + (1,) * (new.ndim - 1)), new, old)
-        fast = jax.tree_util.tree_map(keep, tile(base_scoped, batch), carry.fast)
-        lstm = reset_carry(carry.lstm, fresh)
-        memory = memory_reset(carry.memory, fresh)
-        updates = jnp.where(fresh, 0, carry.updates)
+        fast = _where_rows(fresh, tile(base_scoped, fresh.shape[0]), carry.fast)
         inputs = model_inputs(scenes, obs)
-
-        logits, new_lstm, h = v_forward(model, fast, rest, inputs, lstm)
-        r = tpn.apply(params["tpn"], h, method=tpn.represent)
-        memory = memory_observe(memory, r)
-        tpn_logits = tpn.apply(params["tpn"], r, memory.keys, memory.next_r, memory.probs,
-                               memory_valid(memory), method=tpn.read_logits)
+        features = shared(params["base"], inputs, reset_carry(carry.lstm, fresh))
+        logits, lstm, h = v_per_env(fast, rest, features)
+        tpn_logits, r, memory = tpn.apply(params["tpn"], h, memory_reset(carry.memory, fresh),
+                                          method=tpn.step_logits)
         deadlock, vision = detect(cfg, carry.vision, obs.deadlock, inputs.glob, fresh)
         update = deadlock if cfg.when == "deadlock" else jnp.ones_like(deadlock)
         if cfg.target == "tpn":
             target = jnp.argmax(tpn_logits, -1)
         else:
-            target = jax.random.randint(key, (batch,), 0, NUM_ACTIONS)
-        stepped = v_sgd(model, fast, rest, inputs, lstm, target, cfg.tpn_lr)
-        fast = jax.tree_util.tree_map(
-            lambda new, old: jnp.where(update.reshape((batch,) + (1,) * (new.ndim - 1)),
-                                       new, old), stepped, fast)
+            target = jax.random.randint(key, fresh.shape, 0, NUM_ACTIONS)
+        fast = _where_rows(update, v_sgd(per_env, fast, rest, features, target, cfg.tpn_lr),
+                           fast)
         # act with the updated weights (only rows that updated change)
-        logits2, lstm2, _ = v_forward(model, fast, rest, inputs, lstm)
-        sel = lambda a, b: jax.tree_util.tree_map(
-            lambda x, y: jnp.where(update.reshape((batch,) + (1,) * (x.ndim - 1)), x, y), a, b)
-        logits, new_lstm = sel(logits2, logits), sel(lstm2, new_lstm)
+        logits2, lstm2, _ = v_per_env(fast, rest, features)
+        logits, lstm = _where_rows(update, (logits2, lstm2), (logits, lstm))
         memory = memory_record(memory, r, jax.nn.softmax(logits))
-        action = jnp.argmax(logits, -1).astype(jnp.int32)
-        return action, TPNCarry(new_lstm, fast, memory, vision,
-                                updates + update.astype(jnp.int32))
+        updates = jnp.where(fresh, 0, carry.updates) + update.astype(jnp.int32)
+        return jnp.argmax(logits, -1).astype(jnp.int32), TPNCarry(lstm, fast, memory, vision,
+                                                                   updates)
 
     return Policy(name, init, act)
 
