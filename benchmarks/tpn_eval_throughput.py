@@ -13,7 +13,9 @@ policy) for:
           updated weights, so an update step costs forward + backward + forward;
 * tpn-all / tpn-trunk: updates on every step; fast weights = the whole trunk.
 
-Under vmap both branches of "update or not" are computed on every step, so the cost does
+The fast weights of tpn-trunk hold the LSTM, one copy per episode; the batch is cut to
+`tpn.policy.default_batch_size` (what `evaluate --tpn` uses) so they fit in memory, and
+the row reports the batch it ran. Under vmap both branches of "update or not" are computed on every step, so the cost does
 not depend on how many steps are deadlocks: the numbers are the worst case. Weights are
 freshly initialised (throughput does not depend on them: the scan runs all `--steps`).
 Scenes: the tiny preset with the preset's feature projections swapped in (as in
@@ -42,7 +44,7 @@ from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import build_model, init_params
 from orgnav_jax.scenes import load_or_build
 from orgnav_jax.tpn.config import get_tpn_config
-from orgnav_jax.tpn.policy import build_tpn, init_tpn_params, tpn_policy
+from orgnav_jax.tpn.policy import build_tpn, default_batch_size, init_tpn_params, tpn_policy
 from orgnav_jax.training.config import get_config
 from orgnav_jax.training.policy import model_policy
 
@@ -97,9 +99,10 @@ def main() -> None:
                 tcfg = get_tpn_config(**VARIANTS[name])
                 tpn = build_tpn(cfg, tcfg)
                 pp = {"base": params, "tpn": init_tpn_params(tpn, cfg, jax.random.PRNGKey(1))}
+                b = min(n, default_batch_size(params, tcfg.scope))   # fast weights must fit
                 sps, c = time_policy(tpn_policy(model, tpn, tcfg, name), pp, scenes,
-                                     episodes, args.steps, args.repeats)
-                rows.append(dict(preset=preset, policy=name, num_envs=n,
+                                     episodes.subset(np.arange(b)), args.steps, args.repeats)
+                rows.append(dict(preset=preset, policy=name, num_envs=b,
                                  env_steps_per_s=round(sps, 1), compile_s=round(c, 2),
                                  ratio_to_plain=round(sps / plain, 3)))
             for r in rows[-1 - len(args.variants):]:

@@ -16,7 +16,8 @@ A row BASE+VARIANT (VARIANT in tpn, tpn_all, tpn_random) uses the run of row BAS
 first if needed), trains its TPN (stage 2) in OUT/runs/BASE-s<seed>/tpn once, and
 evaluates it with that variant of the test-time update (Table 2: "all" updates on every
 step, "random" takes a random action as the target). Baseline+TPN is baseline+tpn; the
-full model (ORG+IL+TPN) is org_il+tpn.
+full model (ORG+IL+TPN) is org_il+tpn. A suffix @LR sets the test-time learning rate
+(default 1e-4), e.g. org_il+tpn@1e-3.
 """
 
 from __future__ import annotations
@@ -42,19 +43,19 @@ def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -
     from orgnav_jax.tpn.config import get_tpn_config
     from orgnav_jax.tpn.stage2 import train_tpn
     base, variant = row.split("+")
+    variant, _, lr = variant.partition("@")
     run_one(base, seed, out, overrides)
     tpn_dir = out / "runs" / f"{base}-s{seed}" / "tpn"
-    results = tpn_dir / f"test_{variant}.json"
+    results = tpn_dir / f"test_{variant}{'@' + lr if lr else ''}.json"
     if results.exists():
         return json.loads(results.read_text())["overall"]
-    stage2 = {k: v for k, v in tpn_fields.items() if k != "tpn_lr"}
-    cfg = get_tpn_config(**stage2, base_dir=str(tpn_dir.parent), seed=seed,
+    cfg = get_tpn_config(**tpn_fields, base_dir=str(tpn_dir.parent), seed=seed,
                          run_dir=str(tpn_dir))
     # trains, continues an interrupted run, or (finished) only reloads it
     resume = (tpn_dir / "checkpoints").exists() and any((tpn_dir / "checkpoints").iterdir())
     train_tpn(cfg, resume=resume, progress=sys.stderr.isatty())
     flags = [f"--{k.replace('_', '-')}={v}" for k, v in TPN_VARIANTS[variant].items()]
-    flags += [f"--tpn-lr={tpn_fields['tpn_lr']}"] if "tpn_lr" in tpn_fields else []
+    flags += [f"--tpn-lr={float(lr)}"] if lr else []
     return evaluate.main(["--tpn", str(tpn_dir), "--split", "test", "--out", str(results),
                           "--quiet"] + flags)["overall"]
 
@@ -71,6 +72,22 @@ def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
     train(cfg, resume=resume, progress=sys.stderr.isatty())
     return evaluate.main(["--checkpoint", str(run_dir), "--split", "test", "--out",
                           str(results), "--quiet"])["overall"]
+
+
+def row_name(text: str) -> str:
+    """Validate a --rows entry: ROW, or BASE+VARIANT[@LR]."""
+    base, plus, variant = text.partition("+")
+    variant, at, lr = variant.partition("@")
+    ok = base in TABLE_ROWS and (not plus or variant in TPN_VARIANTS) and (plus or not at)
+    try:
+        ok = ok and (not at or float(lr) >= 0)
+    except ValueError:
+        ok = False
+    if not ok:
+        raise argparse.ArgumentTypeError(
+            f"unknown row {text!r}: expected one of {sorted(TABLE_ROWS)}, or BASE+VARIANT"
+            f"[@LR] with VARIANT in {sorted(TPN_VARIANTS)}")
+    return text
 
 
 def write_table(out: Path, results: dict[str, dict[int, dict]]) -> str:
@@ -94,19 +111,17 @@ def main(argv: list[str] | None = None) -> None:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     rows = sorted(TABLE_ROWS) + [f"{b}+{v}" for b in sorted(TABLE_ROWS) for v in TPN_VARIANTS]
     ap.add_argument("--rows", nargs="+", default=["baseline", "il", "org", "org_il", "il_all"],
-                    choices=rows, metavar="ROW", help="rows: " + ", ".join(rows))
+                    type=row_name, metavar="ROW",
+                    help="rows: " + ", ".join(rows) + " (TPN rows may end in @LR)")
     ap.add_argument("--tpn-episodes", type=int, default=None,
                     help="stage-2 training episodes of TPN rows (TPNConfig.total_episodes)")
-    ap.add_argument("--tpn-lr", type=float, default=None,
-                    help="test-time SGD learning rate of TPN rows (default 1e-4)")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--out", default="experiments/results/table1")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
     overrides = {k: v for k, v in overrides_from_args(args).items()
                  if k not in ("seed", "run_dir")}
-    tpn_fields = {k: v for k, v in (("total_episodes", args.tpn_episodes),
-                                     ("tpn_lr", args.tpn_lr)) if v is not None}
+    tpn_fields = {} if args.tpn_episodes is None else {"total_episodes": args.tpn_episodes}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results: dict[str, dict[int, dict]] = {}

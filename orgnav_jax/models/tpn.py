@@ -30,20 +30,27 @@ def masked_softmax(scores: jax.Array, mask: jax.Array) -> jax.Array:
     return e / jnp.where(denom > 0, denom, 1.0)
 
 
+def topk_weights(query, keys, valid, k: int):
+    """query (..., D), keys (..., M, D), valid (..., M) -> (weights (..., k'), index
+    (..., k')), k' = min(k, M): the k highest valid dot-product scores, softmaxed (invalid
+    ones among them weigh 0). Leading dims broadcast."""
+    scores = jnp.einsum("...d,...md->...m", query, keys)
+    scores, valid = jnp.broadcast_arrays(scores, valid)
+    _, idx = jax.lax.top_k(jnp.where(valid, scores, -jnp.inf), min(k, keys.shape[-2]))
+    w = masked_softmax(jnp.take_along_axis(scores, idx, -1), jnp.take_along_axis(valid, idx, -1))
+    return w, idx
+
+
 def topk_attention(query, keys, values, valid, k: int) -> jax.Array:
     """query (..., D), keys (..., M, D), values (..., M, V), valid (..., M) -> (..., V).
 
     Dot-product scores; the k (clipped to M) highest valid scores are softmaxed, the rest
     get weight 0; zeros when no slot is valid. Leading dims broadcast (e.g. queries
     (B, T, D) against keys (B, 1, M, D) with valid (B, T, M)) and nothing is tiled."""
-    M = keys.shape[-2]
-    scores = jnp.einsum("...d,...md->...m", query, keys)
-    scores, valid = jnp.broadcast_arrays(scores, valid)
-    if M == 0:
-        return jnp.zeros(scores.shape[:-1] + values.shape[-1:], values.dtype)
-    _, idx = jax.lax.top_k(jnp.where(valid, scores, -jnp.inf), min(k, M))   # (..., k)
-    w = masked_softmax(jnp.take_along_axis(scores, idx, -1),
-                       jnp.take_along_axis(valid, idx, -1))
+    if keys.shape[-2] == 0:
+        return jnp.zeros(jnp.broadcast_shapes(query.shape[:-1], valid.shape[:-1])
+                         + values.shape[-1:], values.dtype)
+    w, idx = topk_weights(query, keys, valid, k)
     values = values.reshape((1,) * (idx.ndim + 1 - values.ndim) + values.shape)
     picked = jnp.take_along_axis(values, idx[..., None], axis=-2)         # (..., k, V)
     return jnp.einsum("...k,...kv->...v", w, picked)
@@ -76,9 +83,12 @@ class TPN(nn.Module):
 
     def read_logits(self, r, keys, next_r, probs, valid):
         """r (B, H), keys (B, M, H), next_r (B, M, H), probs (B, M, 6), valid (B, M)
-        -> logits (B, 6)."""
-        values = jnp.concatenate([next_r, self.prob_embed(probs)], axis=-1)
-        return self._head(r, topk_attention(r, keys, values, valid, self.top_k))
+        -> logits (B, 6). Values are gathered for the top-k slots only (the same read as
+        topk_attention over all M values, without materializing them)."""
+        w, idx = topk_weights(r, keys, valid, self.top_k)                  # (B, k)
+        pick = lambda buf: jnp.take_along_axis(buf, idx[..., None], axis=-2)
+        values = jnp.concatenate([pick(next_r), self.prob_embed(pick(probs))], axis=-1)
+        return self._head(r, jnp.einsum("bk,bkv->bv", w, values))
 
     def __call__(self, h, probs, valid):
         """Whole episodes: h (B, T, H), probs (B, T, 6), valid (B, T) -> logits (B, T, 6).
