@@ -161,7 +161,7 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
         4 * cfg.eval_episodes_per_room_type)
     val_fn = jax.jit(lambda p: tpn_loss(p, tpn, val_batch)[1])
     ckpt = RunCheckpoints(run_dir, cfg.keep_checkpoints)
-    log = MetricsLog(run_dir)
+    log = MetricsLog(run_dir, step_name="episodes")
     best, chunk = {"accuracy": -1.0}, 0
     if resume and ckpt.latest_step() is not None:
         runner, meta = ckpt.restore(runner)

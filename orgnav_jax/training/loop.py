@@ -55,8 +55,8 @@ class MetricsLog:
     """Appends one JSON object per record to metrics.jsonl and, if tensorboardX is
     installed, the same scalars to TensorBoard event files under tb/."""
 
-    def __init__(self, run_dir: Path):
-        self.path = run_dir / "metrics.jsonl"
+    def __init__(self, run_dir: Path, step_name: str = "env_steps"):
+        self.path, self.step_name = run_dir / "metrics.jsonl", step_name
         try:
             from tensorboardX import SummaryWriter
             self.tb = SummaryWriter(str(run_dir / "tb"))
@@ -65,7 +65,7 @@ class MetricsLog:
 
     def write(self, kind: str, step: int, values: dict) -> None:
         with self.path.open("a") as f:
-            f.write(json.dumps({"kind": kind, "env_steps": step, **values}) + "\n")
+            f.write(json.dumps({"kind": kind, self.step_name: step, **values}) + "\n")
         if self.tb:
             for k, v in values.items():
                 if isinstance(v, (int, float)) and math.isfinite(v):
