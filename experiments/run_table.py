@@ -1,7 +1,7 @@
 """Reproduce a table: several rows (training presets) x seeds, equal budgets, test split.
 
     python experiments/run_table.py --rows baseline il org org_il il_all --seeds 0 1 2 \\
-        --total-env-steps 1000000 --out experiments/results/table1
+        --total-env-steps 1000000 --out experiments/results/tables
 
     python experiments/run_table.py --rows baseline baseline+tpn org_il org_il+tpn \\
         org_il+tpn_all org_il+tpn_random --out experiments/results/table2
@@ -10,7 +10,7 @@ Each (row, seed) trains in OUT/runs/<row>-s<seed> (skipped when its test results
 resumed when it has checkpoints: rerun the same command after an interruption), is
 evaluated on the test split (best-on-val checkpoint, 250 episodes per room type), and
 the table is rewritten after every run: OUT/results.json (every run) and OUT/table.md
-(mean +- std over seeds). Extra `--FIELD VALUE` options apply to every row.
+(mean +- std over seeds); rows already in OUT/results.json from earlier invocations stay. Extra `--FIELD VALUE` options apply to every row.
 
 A row BASE+VARIANT (VARIANT in tpn, tpn_all, tpn_random) uses the run of row BASE (trained
 first if needed), trains its TPN (stage 2) in OUT/runs/BASE-s<seed>/tpn once, and
@@ -90,7 +90,7 @@ def row_name(text: str) -> str:
     return text
 
 
-def write_table(out: Path, results: dict[str, dict[int, dict]]) -> str:
+def write_table(out: Path, results: dict[str, dict[str, dict]]) -> str:
     """results[row][seed] = metrics -> markdown table of mean +- std (percent)."""
     lines = ["| row | seeds | Success | SPL | Success (L>=5) | SPL (L>=5) |",
              "|---|---|---|---|---|---|"]
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--tpn-episodes", type=int, default=None,
                     help="stage-2 training episodes of TPN rows (TPNConfig.total_episodes)")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    ap.add_argument("--out", default="experiments/results/table1")
+    ap.add_argument("--out", default="experiments/results/tables")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
     overrides = {k: v for k, v in overrides_from_args(args).items()
@@ -124,15 +124,17 @@ def main(argv: list[str] | None = None) -> None:
     tpn_fields = {} if args.tpn_episodes is None else {"total_episodes": args.tpn_episodes}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    results: dict[str, dict[int, dict]] = {}
+    # rows of earlier invocations with the same --out stay in the table
+    saved = out / "results.json"
+    results: dict[str, dict[str, dict]] = json.loads(saved.read_text()) if saved.exists() else {}
     for seed in args.seeds:                     # seed-major: a partial table covers all rows
         for row in args.rows:
             metrics = (run_tpn(row, seed, out, overrides, tpn_fields) if "+" in row
                        else run_one(row, seed, out, overrides))
-            results.setdefault(row, {})[seed] = metrics
+            results.setdefault(row, {})[str(seed)] = metrics
             print(f"{row} seed {seed}: " + ", ".join(f"{m} {100 * metrics[m]:.1f}"
                                                       for m in METRICS), flush=True)
-            write_table(out, {r: results[r] for r in args.rows if r in results})
+            write_table(out, results)
     print(write_table(out, results))
 
 
