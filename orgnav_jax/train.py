@@ -28,30 +28,29 @@ from orgnav_jax.training.config import (
     PRESETS, add_config_arguments, get_config, load_config, overrides_from_args)
 
 
-def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m orgnav_jax.train", description=__doc__,
+def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
+    """The options both stages share."""
+    ap = argparse.ArgumentParser(prog=prog, description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--stage", choices=("nav", "tpn"), default="nav",
+    ap.add_argument("--stage", choices=("nav", "tpn"), default=stage,
                     help="nav: train a navigation model (stage 1); tpn: stage 2 (see above)")
-    ap.add_argument("--preset", default="small", choices=sorted(PRESETS))
     ap.add_argument("--resume", action="store_true",
                     help="continue the run in --run-dir from its latest checkpoint")
     ap.add_argument("--no-test", action="store_true", help="skip the final test evaluation")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    return ap
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = _parser("python -m orgnav_jax.train", "nav")
+    ap.add_argument("--preset", default="small", choices=sorted(PRESETS))
     add_config_arguments(ap)
     return ap
 
 
 def tpn_parser() -> argparse.ArgumentParser:
     from orgnav_jax.tpn.config import add_tpn_arguments
-    ap = argparse.ArgumentParser(prog="python -m orgnav_jax.train --stage tpn",
-                                 description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--stage", choices=("nav", "tpn"), default="tpn")
-    ap.add_argument("--resume", action="store_true",
-                    help="continue the TPN run in --run-dir from its latest checkpoint")
-    ap.add_argument("--no-test", action="store_true", help="skip the final test evaluation")
-    ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    ap = _parser("python -m orgnav_jax.train --stage tpn", "tpn")
     add_tpn_arguments(ap)
     return ap
 

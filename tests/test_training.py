@@ -166,6 +166,12 @@ def test_bad_config_and_checkpoints_are_clear_errors(tmp_path, tiny_dir):
         load_config(tmp_path / "run")
     with pytest.raises(FileNotFoundError, match="not a training run directory"):
         load_config(tmp_path / "nothing")
+    # the command line reports the same errors and exits before any work
+    from orgnav_jax import train as train_cli
+    with pytest.raises(SystemExit, match="unknown model 'resnet'"):
+        train_cli.main(["--model", "resnet"])
+    with pytest.raises(SystemExit):
+        train_cli.main(["--preset", "huge"])
 
 
 def _restore_as(cfg):
