@@ -15,7 +15,8 @@ the table is rewritten after every run: OUT/results.json (every run) and OUT/tab
 A row BASE+VARIANT (VARIANT in tpn, tpn_all, tpn_random) uses the run of row BASE (trained
 first if needed), trains its TPN (stage 2) in OUT/runs/BASE-s<seed>/tpn once, and
 evaluates it with that variant of the test-time update (Table 2: "all" updates on every
-step, "random" takes a random action as the target). Baseline+TPN is baseline+tpn; the
+step, "random" takes a random action as the target; "cosine" detects deadlocks by the
+paper's global-feature match instead of the visited set). Baseline+TPN is baseline+tpn; the
 full model (ORG+IL+TPN) is org_il+tpn. A suffix @LR sets the test-time learning rate
 (default 1e-4), e.g. org_il+tpn@1e-3.
 """
@@ -35,7 +36,8 @@ from orgnav_jax.training.config import TABLE_ROWS, add_config_arguments, get_con
 
 METRICS = ("success", "spl", "success_L5", "spl_L5")
 # test-time variants of a TPN row (TPNConfig fields)
-TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": "random"}}
+TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": "random"},
+                "tpn_cosine": {"deadlock": "cosine"}}
 
 
 def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -> dict:
