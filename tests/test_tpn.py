@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,7 +13,7 @@ from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config
 from orgnav_jax.tpn.fast_weights import policy_ce, sgd_step, split_scope, split_step
-from orgnav_jax.tpn.policy import build_tpn, init_tpn_params, load_tpn_policy, tpn_policy
+from orgnav_jax.tpn.policy import build_tpn, init_tpn_params, load_tpn_policy
 from orgnav_jax.tpn.stage2 import collect, train_tpn, tpn_loss
 from orgnav_jax.training.config import get_config
 from orgnav_jax.training.loop import train

@@ -90,11 +90,10 @@ class Trunk(nn.Module):
     def recur(self, gates, carry):
         """First-layer input gates (B, 4*hidden), carry -> (logits (B, 6), value (B,),
         new carry, LSTM output (B, hidden))."""
-        new_carry = []
+        new_carry, x = [], None
         for i, layer_carry in enumerate(carry):
-            if i > 0:
-                gates = self.lstm[i].project(x)
-            layer_carry, x = self.lstm[i].recur(gates, layer_carry)
+            layer_gates = gates if i == 0 else self.lstm[i].project(x)
+            layer_carry, x = self.lstm[i].recur(layer_gates, layer_carry)
             new_carry.append(layer_carry)
         logits = self.actor(x)
         value = self.critic(nn.relu(self.critic_hidden(x)))[:, 0]
