@@ -92,16 +92,30 @@ def row_name(text: str) -> str:
     return text
 
 
+def paired_gain(results: dict, row: str) -> str:
+    """A TPN row's success minus its base row's, per seed: 'mean ± std' (percent points),
+    or '' for rows without a base or without shared seeds."""
+    base = row.partition("+")[0]
+    seeds = sorted(set(results[row]) & set(results.get(base, {}))) if "+" in row else []
+    if not seeds:
+        return ""
+    d = 100 * np.array([results[row][s]["success"] - results[base][s]["success"]
+                        for s in seeds])
+    return f"{d.mean():+.1f} ± {d.std():.1f}"
+
+
 def write_table(out: Path, results: dict[str, dict[str, dict]]) -> str:
-    """results[row][seed] = metrics -> markdown table of mean +- std (percent)."""
-    lines = ["| row | seeds | Success | SPL | Success (L>=5) | SPL (L>=5) |",
-             "|---|---|---|---|---|---|"]
+    """results[row][seed] = metrics -> markdown table of mean +- std (percent); TPN rows
+    also show their success gain over their base row, paired by seed."""
+    lines = ["| row | seeds | Success | SPL | Success (L>=5) | SPL (L>=5) | gain vs base |",
+             "|---|---|---|---|---|---|---|"]
     for row, by_seed in results.items():
         cells = []
         for m in METRICS:
             v = 100 * np.array([r[m] for r in by_seed.values()])
             cells.append(f"{v.mean():.1f} ± {v.std():.1f}")
-        lines.append(f"| {row} | {len(by_seed)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {row} | {len(by_seed)} | " + " | ".join(cells) +
+                     f" | {paired_gain(results, row)} |")
     text = "\n".join(lines) + "\n"
     (out / "table.md").write_text(text)
     (out / "results.json").write_text(json.dumps(results, indent=1))
