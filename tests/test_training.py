@@ -156,7 +156,8 @@ def test_bad_config_and_checkpoints_are_clear_errors(tmp_path, tiny_dir):
     loop.train(cfg, progress=False, stop_after_chunks=1)
     # a checkpoint from another model (other widths) does not load into this one
     other = small_cfg(tiny_dir, tmp_path / "run", hidden=32)
-    with pytest.raises(ValueError, match="does not fit this model"):
+    with pytest.raises(ValueError, match=r"does not fit this model.*\(16, 128\) float32 in the "
+                       r"checkpoint, \(16, 32\) float32 in this model"):
         _restore_as(other)
     # a run directory from an incompatible version
     path = tmp_path / "run" / "config.json"

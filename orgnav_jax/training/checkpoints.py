@@ -26,7 +26,31 @@ logging.getLogger("absl").setLevel(logging.ERROR)
 def _manager(path: Path, keep: int) -> ocp.CheckpointManager:
     options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True,
                                            enable_async_checkpointing=False)
-    return ocp.CheckpointManager(path.absolute(), options=options)
+    handlers = {"state": ocp.StandardCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
+    return ocp.CheckpointManager(path.absolute(), options=options, item_handlers=handlers)
+
+
+def _leaf_shapes(tree) -> dict[str, tuple]:
+    """{'params/trunk/actor/kernel': (shape, dtype)} for arrays or array metadata."""
+    def name(path):
+        return "/".join(str(getattr(k, "key", getattr(k, "name", getattr(k, "idx", k))))
+                        for k in path)
+    return {name(p): (tuple(x.shape), str(x.dtype))
+            for p, x in jax.tree_util.tree_leaves_with_path(tree)}
+
+
+def _mismatch(saved, wanted) -> str | None:
+    """The first difference between a checkpoint's and a model's arrays, in words."""
+    have, want = _leaf_shapes(saved), _leaf_shapes(wanted)
+    for key in sorted(set(have) | set(want)):
+        if key not in have:
+            return f"{key} is missing from the checkpoint"
+        if key not in want:
+            return f"the checkpoint has {key}, which this model lacks"
+        if have[key] != want[key]:
+            return f"{key} is {have[key][0]} {have[key][1]} in the checkpoint, " \
+                   f"{want[key][0]} {want[key][1]} in this model"
+    return None
 
 
 class RunCheckpoints:
@@ -56,12 +80,12 @@ class RunCheckpoints:
         if step is None:
             raise FileNotFoundError(f"no {'best' if best else ''} checkpoint in {self.run_dir}")
         abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, like)
-        try:
-            out = manager.restore(step, args=ocp.args.Composite(
-                state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()))
-        except (ValueError, KeyError, TypeError) as err:
+        problem = _mismatch(manager.item_metadata(step)["state"], abstract)
+        if problem:      # checked before any read, so no restore is left half done
             raise ValueError(f"checkpoint {manager.directory}/{step} does not fit this model "
-                             f"and config (another model or widths?): {err}") from None
+                             f"and config (another model or widths?): {problem}")
+        out = manager.restore(step, args=ocp.args.Composite(
+            state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()))
         meta = out["meta"]
         if meta.get("config_version") != CONFIG_VERSION:
             raise ValueError(f"checkpoint {manager.directory}/{step} has config version "
