@@ -27,15 +27,14 @@ from orgnav_jax.episodes import (
     sample_episodes,
     save_episodes,
 )
-from orgnav_jax.scenes import SceneSet, load, load_or_build
+from orgnav_jax.scenes import SceneSet, load_scenes
 
 POLICIES = {"random": evaluation.random_policy, "expert": evaluation.expert_policy}
 
 
 def split_scenes(preset: str, scenes_dir: str | None, split: str, seed: int = 0) -> SceneSet:
     """One split of a saved SceneSet directory, or of the cached preset, on device."""
-    full = load(scenes_dir) if scenes_dir else load_or_build(preset, seed)
-    return full.split_view(split).to_device()
+    return load_scenes(preset, seed, scenes_dir).split_view(split).to_device()
 
 
 def episode_set(scenes: SceneSet, split: str, episodes_file: str | None, seed: int,

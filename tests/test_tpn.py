@@ -204,7 +204,9 @@ def test_bad_tpn_input_is_a_clear_error(base_run, tpn_run, tmp_path):
         train_cli.main(["--stage", "tpn", "--base", base_run, "--scope", "head"])
     with pytest.raises(SystemExit, match="need --tpn"):
         evaluate.main(["--checkpoint", base_run, "--when", "all"])
-    with pytest.raises(ValueError, match="not a TPN"):
+    with pytest.raises(ValueError, match=r"not a TPN \(stage 2\) run, but a training one"):
         load_tpn_config(base_run)
+    with pytest.raises(ValueError, match=r"not a training run, but a TPN \(stage 2\) one"):
+        evaluate.main(["--checkpoint", tpn_run])
     with pytest.raises(FileExistsError, match="--resume"):
         train_tpn(load_tpn_config(tpn_run), progress=False)

@@ -16,10 +16,10 @@ from orgnav_jax.scenes.layout import Room, generate_room, render_ascii
 from orgnav_jax.scenes.presets import PRESETS, ScenePreset, get_preset
 from orgnav_jax.scenes.sceneset import NO_ACTION, UNREACHABLE, SceneSet
 from orgnav_jax.scenes.storage import disk_size, load, save
-from orgnav_jax.scenes.cache import load_or_build
+from orgnav_jax.scenes.cache import load_or_build, load_scenes
 
 __all__ = [
-    "build", "load", "save", "load_or_build", "disk_size", "SceneSet", "ScenePreset",
+    "build", "load", "save", "load_or_build", "load_scenes", "disk_size", "SceneSet", "ScenePreset",
     "PRESETS", "get_preset", "expert_tables", "generate_room", "render_ascii", "Room",
     "decode_global", "decode_appearance", "gather_features", "UNREACHABLE", "NO_ACTION",
 ]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
@@ -24,3 +25,10 @@ def load_or_build(preset: str = "small", seed: int = 0, cache_dir: str | os.Path
     scenes = build(preset, seed, progress=progress)
     save(scenes, path)
     return scenes
+
+
+@functools.lru_cache(maxsize=1)
+def load_scenes(preset: str = "small", seed: int = 0, scenes_dir: str | None = None) -> SceneSet:
+    """A saved SceneSet directory, else the cached preset; the last one is kept in memory,
+    so that loading a model and evaluating it in one process reads the set once."""
+    return load(scenes_dir) if scenes_dir else load_or_build(preset, seed)

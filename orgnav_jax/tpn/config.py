@@ -12,7 +12,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-from orgnav_jax.training.config import CONFIG_VERSION
+from orgnav_jax.training.config import CONFIG_VERSION, read_config
 
 SCOPES = ("actor", "trunk", "all")          # parameters a test-time update changes
 DETECTORS = ("visited", "cosine")           # external memory: visited set or feature match
@@ -88,28 +88,9 @@ def get_tpn_config(**fields) -> TPNConfig:
     return cfg.validate()
 
 
-def is_tpn_run(run_dir: str | Path) -> bool:
-    path = Path(run_dir) / "config.json"
-    return path.exists() and json.loads(path.read_text()).get("stage") == "tpn"
-
-
 def load_tpn_config(run_dir: str | Path) -> TPNConfig:
     """The TPNConfig saved in a stage-2 run directory; clear errors otherwise."""
-    path = Path(run_dir) / "config.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{path} not found: {run_dir} is not a TPN run directory")
-    doc = json.loads(path.read_text())
-    if doc.pop("stage", None) != "tpn":
-        raise ValueError(f"{path}: not a TPN (stage 2) run; train one with "
-                         f"`python -m orgnav_jax.train --stage tpn --base RUN_DIR`")
-    version = doc.pop("version", None)
-    if version != CONFIG_VERSION:
-        raise ValueError(f"{path}: config version {version}, this orgnav_jax reads version "
-                         f"{CONFIG_VERSION}")
-    bad = sorted(set(doc) - FIELDS)
-    if bad:
-        raise ValueError(f"{path}: unknown TPN config field(s) {bad}")
-    return TPNConfig(**doc).validate()
+    return read_config(run_dir, TPNConfig, stage="tpn")
 
 
 TEST_TIME_FIELDS = ("tpn_lr", "scope", "when", "target", "deadlock", "cosine_threshold")

@@ -124,21 +124,34 @@ def get_config(preset: str = "small", **overrides) -> TrainConfig:
     return TrainConfig(**{**PRESETS[preset], **overrides}).validate()
 
 
-def load_config(run_dir: str | Path) -> TrainConfig:
-    """The config saved in a run directory (config.json); clear errors otherwise."""
+STAGES = {"nav": "training", "tpn": "TPN (stage 2)"}
+
+
+def read_config(run_dir: str | Path, cls, stage: str = "nav"):
+    """config.json of a run directory -> cls(**fields).validate(), after checking its stage,
+    version and field names; clear errors otherwise."""
     path = Path(run_dir) / "config.json"
     if not path.exists():
-        raise FileNotFoundError(f"{path} not found: {run_dir} is not a training run directory")
+        raise FileNotFoundError(f"{path} not found: {run_dir} is not a {STAGES[stage]} run "
+                                "directory")
     doc = json.loads(path.read_text())
+    found = doc.pop("stage", "nav")
+    if found != stage:
+        raise ValueError(f"{path}: not a {STAGES[stage]} run, but a {STAGES.get(found, found)}"
+                         " one")
     version = doc.pop("version", None)
     if version != CONFIG_VERSION:
         raise ValueError(f"{path}: config version {version}, this orgnav_jax reads version "
                          f"{CONFIG_VERSION}")
-    fields = {f.name for f in dataclasses.fields(TrainConfig)}
-    bad = sorted(set(doc) - fields)
+    bad = sorted(set(doc) - {f.name for f in dataclasses.fields(cls)})
     if bad:
         raise ValueError(f"{path}: unknown config field(s) {bad}")
-    return TrainConfig(**doc).validate()
+    return cls(**doc).validate()
+
+
+def load_config(run_dir: str | Path) -> TrainConfig:
+    """The TrainConfig saved in a training run directory (see read_config)."""
+    return read_config(run_dir, TrainConfig)
 
 
 def _parse_bool(text: str) -> bool:

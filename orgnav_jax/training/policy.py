@@ -30,10 +30,10 @@ def model_policy(model, name: str = "Model") -> Policy:
 
 
 def scenes_for(cfg: TrainConfig):
-    """The full SceneSet a config trains on (cached preset or a saved directory)."""
-    from orgnav_jax.scenes import load, load_or_build
-    return load(cfg.scenes_dir) if cfg.scenes_dir else load_or_build(cfg.scene_preset,
-                                                                     cfg.scene_seed)
+    """The full SceneSet a config trains on (cached preset or a saved directory; the last
+    one loaded stays in memory)."""
+    from orgnav_jax.scenes import load_scenes
+    return load_scenes(cfg.scene_preset, cfg.scene_seed, cfg.scenes_dir)
 
 
 def load_run_model(run_dir: str | Path, best: bool = True):
