@@ -4,6 +4,7 @@
     python -m orgnav_jax.train --preset small --model we --run-dir runs/we
     python -m orgnav_jax.train --run-dir runs/baseline-small --resume
     python -m orgnav_jax.train --stage tpn --base runs/baseline-small   # stage 2: TPN
+    python -m orgnav_jax.train --preset full      # ORG + IL, then its TPN: the full model
 
 With no arguments it builds (or reuses) the small synthetic benchmark, trains the
 Baseline for the default budget, evaluates the best-on-val checkpoint on the test split
@@ -41,9 +42,20 @@ def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
     return ap
 
 
+# presets that run both stages: the navigation preset, then its TPN, evaluated with the
+# test-time learning rate chosen on val on the small benchmark (README, Tables 1-2)
+TPN_PIPELINES = {"baseline_tpn": ("baseline", 1e-3), "full": ("org_il", 1e-3)}
+
+
 def parser() -> argparse.ArgumentParser:
     ap = _parser("python -m orgnav_jax.train", "nav")
-    ap.add_argument("--preset", default="small", choices=sorted(PRESETS))
+    ap.add_argument("--preset", default="small", choices=sorted(PRESETS) + sorted(TPN_PIPELINES),
+                    help="a training preset; baseline_tpn and full (ORG + IL + TPN) also train "
+                         "the TPN (stage 2) on the result")
+    ap.add_argument("--tpn-lr", type=float, default=None,
+                    help="baseline_tpn / full: test-time learning rate (default 1e-3)")
+    ap.add_argument("--tpn-episodes", type=int, default=None,
+                    help="baseline_tpn / full: stage-2 training episodes (default 40000)")
     add_config_arguments(ap)
     return ap
 
@@ -93,6 +105,17 @@ def test_best(run_dir: str, quiet: bool = False) -> dict:
     return evaluate.main(argv + (["--quiet"] if quiet else []))
 
 
+def pipeline_tpn_argv(args, run_dir: str, default_lr: float) -> list[str]:
+    """Stage-2 options of a both-stages preset."""
+    argv = ["--base", run_dir, "--tpn-lr", str(args.tpn_lr or default_lr)]
+    argv += ["--total-episodes", str(args.tpn_episodes)] if args.tpn_episodes else []
+    argv += ["--quiet"] if args.quiet else []
+    argv += ["--no-test"] if args.no_test else []
+    checkpoints = Path(run_dir) / "tpn" / "checkpoints"
+    argv += ["--resume"] if args.resume and checkpoints.exists() else []
+    return argv
+
+
 def main(argv: list[str] | None = None) -> dict:
     argv = sys.argv[1:] if argv is None else list(argv)
     stage = argparse.ArgumentParser(add_help=False)
@@ -101,11 +124,17 @@ def main(argv: list[str] | None = None) -> dict:
         return main_tpn(argv)
     args = parser().parse_args(argv)
     overrides = overrides_from_args(args)
+    pipeline = TPN_PIPELINES.get(args.preset)
     try:
+        if (args.tpn_lr or args.tpn_episodes) and not pipeline:
+            raise ValueError(f"--tpn-lr and --tpn-episodes go with the presets "
+                             f"{sorted(TPN_PIPELINES)}")
         if args.resume and "run_dir" in overrides and not (set(overrides) - {"run_dir"}):
             cfg = load_config(overrides["run_dir"])   # resume with the saved config
         else:
-            cfg = get_config(args.preset, **overrides)
+            if pipeline:
+                overrides.setdefault("run_dir", f"runs/{args.preset}-small")
+            cfg = get_config(pipeline[0] if pipeline else args.preset, **overrides)
     except (ValueError, FileNotFoundError) as err:
         sys.exit(f"error: {err}")
     from orgnav_jax.training.loop import train     # imports JAX; after argument checks
@@ -116,6 +145,8 @@ def main(argv: list[str] | None = None) -> dict:
     print(json.dumps(summary, default=str))
     if not args.no_test:
         summary["test"] = test_best(cfg.run_dir, args.quiet)["overall"]
+    if pipeline:
+        summary["tpn"] = main_tpn(pipeline_tpn_argv(args, cfg.run_dir, pipeline[1]))
     return summary
 
 

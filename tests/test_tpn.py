@@ -194,6 +194,24 @@ def test_cli_trains_and_evaluates_with_tpn(base_run, tmp_path, capsys):
         assert res["overall"]["episodes"] == 20 and out.exists()
 
 
+def test_full_preset_trains_both_stages(base_run, tmp_path):
+    """--preset full = ORG + IL (stage 1), then its TPN (stage 2) in one command."""
+    from orgnav_jax import train as train_cli
+    from orgnav_jax.training.config import load_config
+    scenes_dir = load_config(base_run).scenes_dir
+    run_dir = tmp_path / "full"
+    summary = train_cli.main(["--preset", "full", "--scenes-dir", scenes_dir, "--run-dir",
+                              str(run_dir), "--num-envs", "16", "--rollout-len", "8",
+                              "--updates-per-chunk", "2", "--total-env-steps", "256",
+                              "--eval-episodes-per-room-type", "2", "--tpn-episodes", "64",
+                              "--quiet", "--no-test"])
+    nav = load_config(run_dir)
+    assert (nav.model, nav.il) == ("org", "deadlock")
+    tpn = load_tpn_config(run_dir / "tpn")
+    assert tpn.base_dir == str(run_dir) and tpn.tpn_lr == 1e-3
+    assert summary["tpn"]["episodes"] >= 64 and (run_dir / "tpn" / "best").exists()
+
+
 def test_bad_tpn_input_is_a_clear_error(base_run, tpn_run, tmp_path):
     from orgnav_jax import train as train_cli
     with pytest.raises(SystemExit, match="--base"):
@@ -202,6 +220,8 @@ def test_bad_tpn_input_is_a_clear_error(base_run, tpn_run, tmp_path):
         train_cli.main(["--stage", "tpn", "--base", str(tmp_path / "nothing")])
     with pytest.raises(SystemExit, match="scope"):
         train_cli.main(["--stage", "tpn", "--base", base_run, "--scope", "head"])
+    with pytest.raises(SystemExit, match="go with the presets"):
+        train_cli.main(["--preset", "org_il", "--tpn-lr", "1e-3"])
     with pytest.raises(SystemExit, match="need --tpn"):
         evaluate.main(["--checkpoint", base_run, "--when", "all"])
     with pytest.raises(ValueError, match=r"not a TPN \(stage 2\) run, but a training one"):
