@@ -96,23 +96,26 @@ def main(argv: list[str] | None = None) -> dict:
     if tpn_overrides_from_args(args) and not args.tpn:
         sys.exit("error: test-time TPN options (--tpn-lr, --scope, --when, --target, "
                  "--deadlock, --cosine-threshold) need --tpn TPN_RUN_DIR")
-    if args.tpn:
-        from orgnav_jax.tpn.policy import default_batch_size, load_tpn_policy
-        policy, policy_params, run_cfg, tpn_cfg = load_tpn_policy(
-            args.tpn, **tpn_overrides_from_args(args))
-        preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
-        scene_seed = run_cfg.scene_seed
-        name = f"{Path(tpn_cfg.base_dir).name}-{policy.name}"
-        batch_size = batch_size or default_batch_size(policy_params["base"], tpn_cfg.scope)
-    elif args.checkpoint:
-        from orgnav_jax.training.policy import load_run_policy  # the trainer's checkpoints
-        policy, policy_params, run_cfg = load_run_policy(args.checkpoint)
-        preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
-        scene_seed = run_cfg.scene_seed
-        name = Path(args.checkpoint).name
-    else:
-        policy, policy_params = POLICIES[args.policy or "random"](), None
-        name = args.policy or "random"
+    try:
+        if args.tpn:
+            from orgnav_jax.tpn.policy import default_batch_size, load_tpn_policy
+            policy, policy_params, run_cfg, tpn_cfg = load_tpn_policy(
+                args.tpn, **tpn_overrides_from_args(args))
+            preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
+            scene_seed = run_cfg.scene_seed
+            name = f"{Path(tpn_cfg.base_dir).name}-{policy.name}"
+            batch_size = batch_size or default_batch_size(policy_params["base"], tpn_cfg.scope)
+        elif args.checkpoint:
+            from orgnav_jax.training.policy import load_run_policy  # the trainer's checkpoints
+            policy, policy_params, run_cfg = load_run_policy(args.checkpoint)
+            preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
+            scene_seed = run_cfg.scene_seed
+            name = Path(args.checkpoint).name
+        else:
+            policy, policy_params = POLICIES[args.policy or "random"](), None
+            name = args.policy or "random"
+    except (ValueError, FileNotFoundError) as err:   # bad run directory or option
+        sys.exit(f"error: {err}")
     scenes = split_scenes(preset, scenes_dir, args.split, scene_seed)
     tag = Path(scenes_dir).name if scenes_dir else preset
     out = Path(args.out or f"runs/eval/{name}-{tag}-{args.split}.json")

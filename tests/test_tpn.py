@@ -226,7 +226,9 @@ def test_bad_tpn_input_is_a_clear_error(base_run, tpn_run, tmp_path):
         evaluate.main(["--checkpoint", base_run, "--when", "all"])
     with pytest.raises(ValueError, match=r"not a TPN \(stage 2\) run, but a training one"):
         load_tpn_config(base_run)
-    with pytest.raises(ValueError, match=r"not a training run, but a TPN \(stage 2\) one"):
+    with pytest.raises(SystemExit, match=r"not a training run, but a TPN \(stage 2\) one"):
         evaluate.main(["--checkpoint", tpn_run])
+    with pytest.raises(SystemExit, match="'scope': 'head'"):
+        evaluate.main(["--tpn", tpn_run, "--scope", "head"])
     with pytest.raises(FileExistsError, match="--resume"):
         train_tpn(load_tpn_config(tpn_run), progress=False)
