@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from orgnav_jax import evaluate
+from orgnav_jax.training.checkpoints import has_checkpoints
 from orgnav_jax.training.config import TABLE_ROWS, add_config_arguments, get_config, \
     overrides_from_args
 
@@ -54,8 +55,7 @@ def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -
     cfg = get_tpn_config(**tpn_fields, base_dir=str(tpn_dir.parent), seed=seed,
                          run_dir=str(tpn_dir))
     # trains, continues an interrupted run, or (finished) only reloads it
-    resume = (tpn_dir / "checkpoints").exists() and any((tpn_dir / "checkpoints").iterdir())
-    train_tpn(cfg, resume=resume, progress=sys.stderr.isatty())
+    train_tpn(cfg, resume=has_checkpoints(tpn_dir), progress=sys.stderr.isatty())
     flags = [f"--{k.replace('_', '-')}={v}" for k, v in TPN_VARIANTS[variant].items()]
     flags += [f"--tpn-lr={float(lr)}"] if lr else []
     return evaluate.main(["--tpn", str(tpn_dir), "--split", "test", "--out", str(results),
@@ -70,8 +70,7 @@ def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
     if results.exists():
         return json.loads(results.read_text())["overall"]
     cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir)})
-    resume = (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir())
-    train(cfg, resume=resume, progress=sys.stderr.isatty())
+    train(cfg, resume=has_checkpoints(run_dir), progress=sys.stderr.isatty())
     return evaluate.main(["--checkpoint", str(run_dir), "--split", "test", "--out",
                           str(results), "--quiet"])["overall"]
 

@@ -60,6 +60,12 @@ def expert_policy() -> Policy:
     return Policy("Expert", lambda batch, _: (), act)
 
 
+def where_rows(mask, new, old):
+    """Per-row select between two pytrees with leading axis B: new where mask (B,)."""
+    return jax.tree_util.tree_map(
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
+
+
 @functools.partial(jax.jit, static_argnames=("policy", "params", "num_steps"))
 def _run_batch(policy: Policy, policy_params, scenes: SceneSet, scene, start, target,
                key, params: env.EnvParams, num_steps: int):
@@ -74,10 +80,7 @@ def _run_batch(policy: Policy, policy_params, scenes: SceneSet, scene, start, ta
         state, obs, pcarry, running, success, fresh = carry
         action, pcarry = policy.act(policy_params, pcarry, obs, key, scenes, fresh)
         obs2, state2, _, done, info = v_step(state, action, scenes, params)
-        keep = lambda new, old: jnp.where(
-            running.reshape(running.shape + (1,) * (new.ndim - 1)), new, old)
-        state = jax.tree_util.tree_map(keep, state2, state)
-        obs = jax.tree_util.tree_map(keep, obs2, obs)
+        state, obs = where_rows(running, (state2, obs2), (state, obs))
         success = success | (running & info["success"])
         return (state, obs, pcarry, running & ~done, success, jnp.zeros_like(fresh)), None
 

@@ -78,9 +78,7 @@ def main_tpn(argv: list[str]) -> dict:
         else:
             if not fields.get("base_dir"):
                 raise ValueError("--stage tpn needs --base RUN_DIR (a finished training run)")
-            if not (Path(fields["base_dir"]) / "config.json").exists():
-                raise FileNotFoundError(f"--base {fields['base_dir']}: no config.json there; "
-                                        "not a training run directory")
+            load_config(fields["base_dir"])      # a training run (clear errors otherwise)
             cfg = get_tpn_config(**fields)
     except (ValueError, FileNotFoundError) as err:
         sys.exit(f"error: {err}")
@@ -111,8 +109,8 @@ def pipeline_tpn_argv(args, run_dir: str, default_lr: float) -> list[str]:
     argv += ["--total-episodes", str(args.tpn_episodes)] if args.tpn_episodes else []
     argv += ["--quiet"] if args.quiet else []
     argv += ["--no-test"] if args.no_test else []
-    checkpoints = Path(run_dir) / "tpn" / "checkpoints"
-    argv += ["--resume"] if args.resume and checkpoints.exists() else []
+    from orgnav_jax.training.checkpoints import has_checkpoints
+    argv += ["--resume"] if args.resume and has_checkpoints(Path(run_dir) / "tpn") else []
     return argv
 
 

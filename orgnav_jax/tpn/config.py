@@ -1,8 +1,8 @@
 """TPN configuration: stage-2 training and the test-time update, one frozen dataclass.
 
     cfg = get_tpn_config(base_dir="runs/baseline-small")     # defaults, run_dir base/tpn
-    cfg = tpn_config_from_args(["--base", "runs/x", "--tpn-lr", "1e-3"])
-Every field is a command-line option (`--deadlock cosine`, `--scope trunk`).
+    cfg = load_tpn_config("runs/baseline-small/tpn")         # a stage-2 run's config
+Every field is a command-line option (add_tpn_arguments: `--base DIR`, `--scope trunk`).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ class TPNConfig:
     signature_dim: int = 64           # cosine: random projection width of the global map
     # stage 2: the frozen base acts in num_envs training episodes per update
     act: str = "sample"               # sample | greedy (the base's actions in stage 2)
-    max_steps: int = 100              # stage-2 episode cap (= test-time memory size)
+    max_steps: int = 100              # stage-2 episode cap (test time: the eval caps)
     num_envs: int = 64
     lr: float = 3e-4
     max_grad_norm: float = 10.0
@@ -68,6 +68,11 @@ class TPNConfig:
         if not -1.0 <= self.cosine_threshold <= 1.0:
             raise ValueError("TPN config field 'cosine_threshold' must lie in [-1, 1]")
         return self
+
+    def test_time(self) -> "TPNConfig":
+        """Only the fields the test-time policy reads (others default), so that runs which
+        differ in directories, seeds or stage-2 budget share one compiled evaluation."""
+        return TPNConfig(**{f: getattr(self, f) for f in TEST_TIME_FIELDS + ("signature_dim",)})
 
     def to_json(self) -> str:
         return json.dumps({"version": CONFIG_VERSION, "stage": "tpn",

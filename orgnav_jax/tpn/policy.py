@@ -24,7 +24,7 @@ from flax import struct
 
 from orgnav_jax.constants import NUM_ACTIONS
 from orgnav_jax.env import EnvParams
-from orgnav_jax.evaluation import Policy
+from orgnav_jax.evaluation import Policy, where_rows
 from orgnav_jax.models import model_inputs, reset_carry
 from orgnav_jax.models.tpn import TPN, memory_init, memory_record, memory_reset
 from orgnav_jax.tpn.config import TPNConfig, get_tpn_config, load_tpn_config
@@ -51,12 +51,6 @@ def tile(tree, batch: int):
     return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), tree)
 
 
-def _where_rows(mask, new, old):
-    """Per-row select between two pytrees with leading axis B."""
-    return jax.tree_util.tree_map(
-        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
-
-
 @functools.cache
 def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN") -> Policy:
     """policy_params = {"base": navigation variables, "tpn": TPN variables}."""
@@ -73,7 +67,7 @@ def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN") -> Policy:
 
     def act(params, carry: TPNCarry, obs, key, scenes, fresh):
         base_scoped, rest = split_scope(params["base"], cfg.scope)
-        fast = _where_rows(fresh, tile(base_scoped, fresh.shape[0]), carry.fast)
+        fast = where_rows(fresh, tile(base_scoped, fresh.shape[0]), carry.fast)
         inputs = model_inputs(scenes, obs)
         features = shared(params["base"], inputs, reset_carry(carry.lstm, fresh))
         logits, lstm, h = v_per_env(fast, rest, features)
@@ -85,11 +79,11 @@ def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN") -> Policy:
             target = jnp.argmax(tpn_logits, -1)
         else:
             target = jax.random.randint(key, fresh.shape, 0, NUM_ACTIONS)
-        fast = _where_rows(update, v_sgd(per_env, fast, rest, features, target, cfg.tpn_lr),
+        fast = where_rows(update, v_sgd(per_env, fast, rest, features, target, cfg.tpn_lr),
                            fast)
         # act with the updated weights (only rows that updated change)
         logits2, lstm2, _ = v_per_env(fast, rest, features)
-        logits, lstm = _where_rows(update, (logits2, lstm2), (logits, lstm))
+        logits, lstm = where_rows(update, (logits2, lstm2), (logits, lstm))
         memory = memory_record(memory, r, jax.nn.softmax(logits))
         updates = jnp.where(fresh, 0, carry.updates) + update.astype(jnp.int32)
         return jnp.argmax(logits, -1).astype(jnp.int32), TPNCarry(lstm, fast, memory, vision,
@@ -115,8 +109,8 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
     tpn_params, _ = ckpt.restore(like, best=True)
     name = f"{nav_cfg.model}+TPN" + ("" if cfg.when == "deadlock" else f"-{cfg.when}") + \
         ("" if cfg.target == "tpn" else f"-{cfg.target}")
-    return tpn_policy(model, tpn, cfg, name), {"base": base_params, "tpn": tpn_params}, \
-        nav_cfg, cfg
+    return tpn_policy(model, tpn, cfg.test_time(), name), \
+        {"base": base_params, "tpn": tpn_params}, nav_cfg, cfg
 
 
 def default_batch_size(base_params, scope: str, budget_bytes: float = 5e8) -> int:

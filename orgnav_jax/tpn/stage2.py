@@ -26,11 +26,12 @@ from flax import struct
 from tqdm import tqdm
 
 from orgnav_jax import env
+from orgnav_jax.evaluation import where_rows
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
 from orgnav_jax.tpn.policy import build_tpn, init_tpn_params
-from orgnav_jax.training.checkpoints import RunCheckpoints, write_config
+from orgnav_jax.training.checkpoints import RunCheckpoints, check_run_dir, write_config
 from orgnav_jax.training.losses import imitation_loss
 from orgnav_jax.training.loop import MetricsLog, NonFiniteLoss
 
@@ -74,9 +75,7 @@ def collect(model, base_params, cfg: TPNConfig, scenes, key, num: int) -> Episod
         deadlock, vision = detect(cfg, vision, obs.deadlock, inputs.glob, fresh)
         expert = scenes.expert_action[state.scene, state.state, state.target]
         _, state2, _, done, info = v_step(state, action, scenes, params)
-        keep = lambda new, old: jnp.where(
-            running.reshape(running.shape + (1,) * (new.ndim - 1)), new, old)
-        state = jax.tree_util.tree_map(keep, state2, state)
+        state = where_rows(running, state2, state)
         out = (jax.lax.stop_gradient(h), jax.lax.stop_gradient(jax.nn.softmax(logits)),
                running, deadlock, expert.astype(jnp.int32))      # the base is frozen
         success = success | (running & info["success"])
@@ -136,13 +135,7 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
     The best-on-val TPN (accuracy on the val episodes' deadlock steps) is kept."""
     from orgnav_jax.training.policy import load_run_model, scenes_for
     run_dir = Path(cfg.run_dir)
-    if resume:
-        if load_tpn_config(run_dir) != cfg:
-            raise ValueError(f"--resume: {run_dir}/config.json differs from the requested "
-                             "config; resume with the same options (or none)")
-    elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
-        raise FileExistsError(f"{run_dir} already holds checkpoints: pass --resume to "
-                              "continue it, or choose another --run-dir")
+    check_run_dir(run_dir, cfg, resume, load_tpn_config)
     model, base_params, nav_cfg = load_run_model(cfg.base_dir)
     write_config(run_dir, cfg)
     scenes = scenes_for(nav_cfg)

@@ -93,6 +93,24 @@ class RunCheckpoints:
         return out["state"], meta
 
 
+def has_checkpoints(run_dir: str | os.PathLike) -> bool:
+    """Whether a run directory holds at least one latest-N checkpoint."""
+    path = Path(run_dir) / "checkpoints"
+    return path.exists() and any(path.iterdir())
+
+
+def check_run_dir(run_dir: str | os.PathLike, cfg, resume: bool, load_saved) -> None:
+    """Before a run starts: --resume needs the saved config (load_saved(run_dir)) to equal
+    cfg; a fresh run must not overwrite checkpoints."""
+    if resume:
+        if load_saved(run_dir) != cfg:
+            raise ValueError(f"--resume: {run_dir}/config.json differs from the requested "
+                             "config; resume with the same options (or none)")
+    elif has_checkpoints(run_dir):
+        raise FileExistsError(f"{run_dir} already holds checkpoints: pass --resume to "
+                              "continue it, or choose another --run-dir")
+
+
 def write_config(run_dir: str | os.PathLike, cfg: TrainConfig) -> None:
     path = Path(run_dir) / "config.json"
     path.parent.mkdir(parents=True, exist_ok=True)

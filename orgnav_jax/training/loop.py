@@ -26,7 +26,7 @@ from tqdm import tqdm
 from orgnav_jax import env, evaluation
 from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import build_model
-from orgnav_jax.training.checkpoints import RunCheckpoints, write_config
+from orgnav_jax.training.checkpoints import RunCheckpoints, check_run_dir, write_config
 from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.training.policy import model_policy, scenes_for
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
@@ -94,14 +94,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     """Train (or resume) the run in cfg.run_dir -> summary dict (best val, env steps).
     stop_after_chunks ends early (for tests of kill-and-resume)."""
     run_dir = Path(cfg.run_dir)
-    if resume:
-        saved = load_config(run_dir)
-        if saved != cfg:
-            raise ValueError(f"--resume: {run_dir}/config.json differs from the requested "
-                             "config; resume with the same options (or none)")
-    elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
-        raise FileExistsError(f"{run_dir} already holds checkpoints: pass --resume to "
-                              "continue it, or choose another --run-dir")
+    check_run_dir(run_dir, cfg, resume, load_config)
     write_config(run_dir, cfg)
     scenes = scenes_for(cfg)
     train_scenes = scenes.split_view("train").to_device()
