@@ -14,7 +14,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from orgnav_jax.constants import IMAGE_SIZE
+from orgnav_jax.constants import FEATURE_GRID, IMAGE_SIZE
 from orgnav_jax.models.encoders import BaselineEncoder, WordEmbeddingEncoder
 from orgnav_jax.models.org import ORGEncoder, ReleasedORGEncoder, dsp_from_scenes
 from orgnav_jax.models.trunk import Trunk
@@ -28,6 +28,7 @@ class ModelInputs(NamedTuple):
     conf: jax.Array         # (B, C) confidences
     target: jax.Array       # (B, C) target one-hot
     prev_action: jax.Array  # (B, 6) previous action one-hot
+    drop: jax.Array | None = None   # (B, 7, 7, glob_channels) dropout mask; None = no dropout
 
 
 def model_inputs(scenes, obs) -> ModelInputs:
@@ -43,7 +44,7 @@ class NavModel(nn.Module):
     def embed(self, inputs: ModelInputs, train: bool = False):
         """The non-recurrent part: inputs (B, ...) -> first LSTM layer's input gates (B, 4H)."""
         maps = self.encoder(inputs.app, inputs.box, inputs.conf, inputs.target, train)
-        return self.trunk.embed(inputs.glob, maps, inputs.prev_action)
+        return self.trunk.embed(inputs.glob, maps, inputs.prev_action, inputs.drop)
 
     def recur(self, gates, carry):
         """Input gates (B, 4H), carry -> (logits (B, 6), value (B,), carry, LSTM output)."""
@@ -55,6 +56,10 @@ class NavModel(nn.Module):
 
     def initial_carry(self, batch: int):
         return self.trunk.initial_carry(batch)
+
+    def dropout_shape(self, batch: int) -> tuple[int, ...]:
+        """Shape of the trunk's dropout mask for a batch (see models.trunk.dropout_mask)."""
+        return (batch, FEATURE_GRID, FEATURE_GRID, self.trunk.glob_channels)
 
 
 # name -> factory(model config, training SceneSet) -> encoder module

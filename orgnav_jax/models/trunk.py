@@ -1,6 +1,6 @@
 """The navigation trunk shared by every model (paper / authors' release).
 
-global map (B, 7, 7, G) -> Dense(glob_channels) ReLU
+global map (B, 7, 7, G) -> Dense(glob_channels) ReLU [dropout: times a given mask]
 previous action (B, 6)  -> Dense(action_embed), tiled to 7x7
 category maps (B, C, 49) -> 7x7xC
 concat -> Dense(fuse_channels) ReLU -> flatten (B, 49*fuse) -> LSTM x layers (hidden)
@@ -13,6 +13,11 @@ does not depend on earlier steps; `recur` runs the recurrence and the heads. In 
 `embed` runs once over all T*N steps of a rollout (large matmuls) and only `recur` is
 scanned. The LSTM cell is flax's (gates i, f, g, o; input kernels lecun-normal, recurrent
 kernels orthogonal per gate, zero bias), with its input projection done in `embed`.
+
+Dropout (the release's 0.25 after the global map's 1x1 layer) is an explicit mask input,
+not flax's rng-driven nn.Dropout: the rollout draws the mask of each step from a key it
+stores in the trajectory, and the loss's replay rebuilds the very same masks
+(`dropout_mask`). Without a mask (evaluation) the trunk is deterministic.
 """
 
 from __future__ import annotations
@@ -76,10 +81,13 @@ class Trunk(nn.Module):
         self.critic_hidden = nn.Dense(64)
         self.critic = nn.Dense(1)
 
-    def embed(self, glob, cat_maps, prev_action):
-        """(B, 7, 7, G), (B, C, 49), (B, 6) -> first-layer LSTM input gates (B, 4*hidden)."""
+    def embed(self, glob, cat_maps, prev_action, drop=None):
+        """(B, 7, 7, G), (B, C, 49), (B, 6), dropout mask (B, 7, 7, glob_channels) or None
+        -> first-layer LSTM input gates (B, 4*hidden)."""
         B = glob.shape[0]
         g = nn.relu(self.global_1x1(glob))
+        if drop is not None:
+            g = g * drop
         a = self.action_dense(prev_action)
         a = jnp.broadcast_to(a[:, None, None, :], (B, FEATURE_GRID, FEATURE_GRID, a.shape[-1]))
         c = jnp.moveaxis(cat_maps, 1, -1).reshape(B, FEATURE_GRID, FEATURE_GRID, -1)
@@ -107,6 +115,12 @@ class Trunk(nn.Module):
         """Zero LSTM state: a tuple per layer of (c, h), each (batch, hidden)."""
         z = jnp.zeros((batch, self.hidden), jnp.float32)
         return tuple((z, z) for _ in range(self.lstm_layers))
+
+
+def dropout_mask(key: jax.Array, rate: float, shape) -> jax.Array:
+    """Inverted-dropout mask: 0 with probability `rate`, else 1 / (1 - rate) -> float32."""
+    keep = jax.random.bernoulli(key, 1.0 - rate, shape)
+    return keep.astype(jnp.float32) / (1.0 - rate)
 
 
 def reset_carry(carry, fresh: jax.Array):
