@@ -10,7 +10,10 @@ Each (row, seed) trains in OUT/runs/<row>-s<seed> (skipped when its test results
 resumed when it has checkpoints: rerun the same command after an interruption), is
 evaluated on the test split (best-on-val checkpoint, 250 episodes per room type), and
 the table is rewritten after every run: OUT/results.json (every run) and OUT/table.md
-(mean +- std over seeds); rows already in OUT/results.json from earlier invocations stay. Extra `--FIELD VALUE` options apply to every row.
+(mean +- std over seeds, with the failure analysis: wrong Done, timeout, revisits and
+failed moves); at the end OUT/curves.png shows the val learning curves of the non-TPN
+rows (python -m orgnav_jax.plots curves). Rows already in OUT/results.json from earlier
+invocations stay. Extra `--FIELD VALUE` options apply to every row.
 
 A row BASE+VARIANT (VARIANT in tpn, tpn_all, tpn_random) uses the run of row BASE (trained
 first if needed), trains its TPN (stage 2) in OUT/runs/BASE-s<seed>/tpn once, and
@@ -36,6 +39,9 @@ from orgnav_jax.training.config import TABLE_ROWS, add_config_arguments, get_con
     overrides_from_args
 
 METRICS = ("success", "spl", "success_L5", "spl_L5")
+# failure analysis columns: (result key, column label, scale); see docs/evaluation.md
+FAILURE_METRICS = (("wrong_done", "wrong Done", 100), ("timeout", "timeout", 100),
+                   ("revisits", "revisits/ep", 1), ("failed_moves", "failed moves/ep", 1))
 # test-time variants of a TPN row (TPNConfig fields)
 TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": "random"},
                 "tpn_cosine": {"deadlock": "cosine"}}
@@ -103,22 +109,50 @@ def paired_gain(results: dict, row: str) -> str:
     return f"{d.mean():+.1f} ± {d.std():.1f}"
 
 
+def mean_std(by_seed: dict[str, dict], key: str, scale: float = 100.0) -> str:
+    """'mean ± std' of one metric over seeds, or '-' where a seed's results lack it
+    (results of runs made before the metric existed)."""
+    if not by_seed or any(key not in r for r in by_seed.values()):
+        return "-"
+    v = scale * np.array([r[key] for r in by_seed.values()], np.float64)
+    return f"{v.mean():.1f} ± {v.std():.1f}"
+
+
 def write_table(out: Path, results: dict[str, dict[str, dict]]) -> str:
-    """results[row][seed] = metrics -> markdown table of mean +- std (percent); TPN rows
-    also show their success gain over their base row, paired by seed."""
-    lines = ["| row | seeds | Success | SPL | Success (L>=5) | SPL (L>=5) | gain vs base |",
-             "|---|---|---|---|---|---|---|"]
+    """results[row][seed] = metrics -> markdown table of mean +- std over seeds: METRICS
+    in percent; TPN rows also show their success gain over their base row, paired by
+    seed; then the failure analysis (FAILURE_METRICS: wrong Done and timeout in percent
+    of episodes, revisits and failed moves per episode; '-' for older results)."""
+    head = ["row", "seeds", "Success", "SPL", "Success (L>=5)", "SPL (L>=5)",
+            "gain vs base"] + [label for _, label, _ in FAILURE_METRICS]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for row, by_seed in results.items():
-        cells = []
-        for m in METRICS:
-            v = 100 * np.array([r[m] for r in by_seed.values()])
-            cells.append(f"{v.mean():.1f} ± {v.std():.1f}")
-        lines.append(f"| {row} | {len(by_seed)} | " + " | ".join(cells) +
-                     f" | {paired_gain(results, row)} |")
+        cells = [mean_std(by_seed, m) for m in METRICS] + [paired_gain(results, row)]
+        cells += [mean_std(by_seed, k, scale) for k, _, scale in FAILURE_METRICS]
+        lines.append(f"| {row} | {len(by_seed)} | " + " | ".join(cells) + " |")
     text = "\n".join(lines) + "\n"
     (out / "table.md").write_text(text)
     (out / "results.json").write_text(json.dumps(results, indent=1))
     return text
+
+
+def write_curves(out: Path, results: dict[str, dict[str, dict]]) -> Path | None:
+    """OUT/curves.png: val success and SPL against env steps (mean and min-max band over
+    seeds) of the rows that train a navigation model (TPN rows have no val curve of
+    their own). Never ends a sweep: a missing matplotlib or metrics.jsonl is a warning."""
+    runs = [out / "runs" / f"{row}-s{seed}" for row, by_seed in results.items()
+            if "+" not in row for seed in by_seed]
+    runs = [r for r in runs if (r / "metrics.jsonl").exists()]
+    if not runs:
+        return None
+    try:
+        from orgnav_jax.plots import plot_curves
+        path = out / "curves.png"
+        plot_curves(runs, path, quiet=True)
+        return path
+    except Exception as err:                    # noqa: BLE001 (curves are optional)
+        print(f"warning: no learning curves ({type(err).__name__}: {err})", file=sys.stderr)
+        return None
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -151,6 +185,9 @@ def main(argv: list[str] | None = None) -> None:
                                                       for m in METRICS), flush=True)
             write_table(out, results)
     print(write_table(out, results))
+    curves = write_curves(out, results)
+    if curves:
+        print(f"learning curves: {curves}")
 
 
 if __name__ == "__main__":

@@ -8,7 +8,8 @@
 
 The episode set is sampled with --episode-seed (250 per room type) and written next to
 the results, or replayed from --episodes. Results: a JSON file (overall, per room type,
-per target) and a Table-1-style printout.
+per target; with the failure analysis: wrong_done, timeout, revisits, failed_moves, see
+docs/evaluation.md) and a Table-1-style printout plus a failure table.
 """
 
 from __future__ import annotations
@@ -58,9 +59,16 @@ def run(policy: evaluation.Policy, policy_params, scenes: SceneSet, episodes, se
 
 
 def print_results(name: str, result: dict) -> None:
+    """Table-1 metrics overall and per room type, then the failure analysis (how the
+    episodes ended, revisits and failed moves per episode; docs/evaluation.md)."""
     print(evaluation.format_table({name: result["overall"]}))
     print()
     print(evaluation.format_table(result["per_room_type"], title="per room type:"))
+    print()
+    rows = {name: result["overall"],
+            **{f"  {room}": m for room, m in result["per_room_type"].items()}}
+    print(evaluation.format_failures(rows, title="failure analysis (success + wrong Done + "
+                                                 "timeout = 100%; moves per episode):"))
 
 
 def parser() -> argparse.ArgumentParser:

@@ -14,6 +14,14 @@ A Policy is a pair of pure, batched functions:
 Metrics per episode: success; SPL = success * L_opt / max(L, L_opt), where L counts the
 non-Done actions and L_opt the shortest such path at the start; "L>=5" keeps the
 episodes with L_opt >= 5.
+
+Failure analysis, counted inside the scan (docs/evaluation.md): every episode ends in
+exactly one of success (Done with the target visible), wrong_done (Done with the target
+not visible) and timeout (the step cap reached without Done). revisits counts the
+non-Done steps that moved the agent to another state it had visited before in the
+episode; failed_moves the non-Done steps that left it in place (a blocked MoveAhead,
+LookUp at horizon 0, LookDown at 30). The two are disjoint: their sum is the number of
+steps after which the env flags a deadlock (Observation.deadlock).
 """
 
 from __future__ import annotations
@@ -28,11 +36,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from orgnav_jax import env
-from orgnav_jax.constants import CATEGORIES, NUM_ACTIONS, ROOM_TYPES
+from orgnav_jax.constants import CATEGORIES, DONE, NUM_ACTIONS, ROOM_TYPES
 from orgnav_jax.episodes import EpisodeSet
 from orgnav_jax.scenes.sceneset import SceneSet
 
 LONG_PATH = 5  # the paper's "L>=5" columns
+OUTCOMES = ("success", "wrong_done", "timeout")  # per-episode flags, a partition
+COUNTS = ("revisits", "failed_moves")            # per-episode step counts
+FAILURE_KEYS = OUTCOMES[1:] + COUNTS             # what summarize adds when present
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,7 +80,8 @@ def where_rows(mask, new, old):
 @functools.partial(jax.jit, static_argnames=("policy", "params", "num_steps"))
 def _run_batch(policy: Policy, policy_params, scenes: SceneSet, scene, start, target,
                key, params: env.EnvParams, num_steps: int):
-    """Episodes (B,) -> dict of (B,) arrays: success, path_len, steps."""
+    """Episodes (B,) -> dict of (B,) arrays: success, wrong_done, timeout (bool),
+    path_len, steps, revisits, failed_moves (int32), finished (bool)."""
     batch = scene.shape[0]
     state = jax.vmap(env.start_episode, in_axes=(0, 0, 0, None, None))(
         scene, start, target, scenes, params)
@@ -77,30 +89,39 @@ def _run_batch(policy: Policy, policy_params, scenes: SceneSet, scene, start, ta
     v_step = jax.vmap(env.step_env, in_axes=(0, 0, None, None))
 
     def body(carry, key):
-        state, obs, pcarry, running, success, fresh = carry
+        state, obs, pcarry, running, fresh, c = carry
         action, pcarry = policy.act(policy_params, pcarry, obs, key, scenes, fresh)
         obs2, state2, _, done, info = v_step(state, action, scenes, params)
+        said_done = state2.prev_action == DONE     # the action as the env applied it
+        moved_back = ~said_done & state2.revisited & ~info["failed"]
+        c = {"success": c["success"] | (running & info["success"]),
+             "wrong_done": c["wrong_done"] | (running & said_done & ~info["success"]),
+             "timeout": c["timeout"] | (running & done & ~said_done),
+             "revisits": c["revisits"] + (running & moved_back).astype(jnp.int32),
+             "failed_moves": c["failed_moves"] + (running & info["failed"]).astype(jnp.int32)}
         state, obs = where_rows(running, (state2, obs2), (state, obs))
-        success = success | (running & info["success"])
-        return (state, obs, pcarry, running & ~done, success, jnp.zeros_like(fresh)), None
+        return (state, obs, pcarry, running & ~done, jnp.zeros_like(fresh), c), None
 
+    flag, count = jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32)
+    counters = {"success": flag, "wrong_done": flag, "timeout": flag,
+                "revisits": count, "failed_moves": count}
     init = (state, obs, policy.init(batch, policy_params), jnp.ones(batch, bool),
-            jnp.zeros(batch, bool), jnp.ones(batch, bool))
-    (state, _, _, running, success, _), _ = jax.lax.scan(
+            jnp.ones(batch, bool), counters)
+    (state, _, _, running, _, c), _ = jax.lax.scan(
         body, init, jax.random.split(key, num_steps))
-    return {"success": success, "path_len": state.path_len, "steps": state.steps,
-            "finished": ~running}
+    return {**c, "path_len": state.path_len, "steps": state.steps, "finished": ~running}
 
 
 def run_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: EpisodeSet,
                  params: env.EnvParams, seed: int = 0, batch_size: int = 1000,
                  progress: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
-    """Run every episode to its end -> per-episode numpy arrays (E,): success, path_len,
-    optimal_len, spl, room_type, target. Batches are padded to batch_size so the jitted
-    scan compiles once."""
+    """Run every episode to its end -> per-episode numpy arrays (E,): success, wrong_done,
+    timeout (bool; exactly one is true per episode), path_len, steps, revisits,
+    failed_moves, optimal_len, spl, room_type, target. Batches are padded to batch_size
+    so the jitted scan compiles once."""
     num_steps = max(params.max_steps)
     n = len(episodes)
-    out: dict[str, list] = {"success": [], "path_len": [], "steps": []}
+    out: dict[str, list] = {k: [] for k in (*OUTCOMES, "path_len", "steps", *COUNTS)}
     key = jax.random.PRNGKey(seed)
     for lo in range(0, n, batch_size):
         idx = np.arange(lo, lo + batch_size) % n       # pad the last batch by wrapping
@@ -131,14 +152,21 @@ def spl(success, path_len, optimal_len) -> np.ndarray:
 
 
 def summarize(per_episode: dict[str, np.ndarray]) -> dict[str, float]:
-    """Mean success and SPL over all episodes and over those with L_opt >= 5."""
+    """Mean success and SPL over all episodes and over those with L_opt >= 5; where the
+    per-episode arrays have them (run_episodes does), the failure analysis over all
+    episodes: the shares wrong_done and timeout (with success they sum to 1) and the
+    mean revisits and failed_moves per episode."""
     long = per_episode["optimal_len"] >= LONG_PATH
     mean = lambda a, m: float(np.mean(a[m])) if m.any() else float("nan")
     every = np.ones_like(long)
-    return {"episodes": int(long.size), "success": mean(per_episode["success"], every),
-            "spl": mean(per_episode["spl"], every), "episodes_L5": int(long.sum()),
-            "success_L5": mean(per_episode["success"], long),
-            "spl_L5": mean(per_episode["spl"], long)}
+    out = {"episodes": int(long.size), "success": mean(per_episode["success"], every),
+           "spl": mean(per_episode["spl"], every), "episodes_L5": int(long.sum()),
+           "success_L5": mean(per_episode["success"], long),
+           "spl_L5": mean(per_episode["spl"], long)}
+    for k in FAILURE_KEYS:
+        if k in per_episode:
+            out[k] = mean(np.asarray(per_episode[k], np.float64), every)
+    return out
 
 
 def metrics(per_episode: dict[str, np.ndarray]) -> dict:
@@ -177,4 +205,21 @@ def format_table(rows: dict[str, dict], title: str = "") -> str:
     for name, m in rows.items():
         lines.append(f"{name:<22} {100 * m['success']:8.1f} {100 * m['spl']:8.1f} "
                      f"{100 * m['success_L5']:8.1f} {100 * m['spl_L5']:8.1f}")
+    return "\n".join(lines)
+
+
+def format_failures(rows: dict[str, dict], title: str = "") -> str:
+    """The failure analysis as a text table: one row per method (or room type), columns
+    Success, wrong Done, Timeout (percent of episodes, summing to 100), revisits and
+    failed moves per episode; '-' where a summary lacks the keys (older results)."""
+    head = (f"{'Method':<22} {'Success':>8} {'WrongDone':>9} {'Timeout':>8} {'Revisits':>9} "
+            f"{'FailedMv':>9}\n{'':<22} {'%':>8} {'%':>9} {'%':>8} {'/ep':>9} {'/ep':>9}")
+    lines = [title] if title else []
+    lines += [head, "-" * len(head.splitlines()[0])]
+    for name, m in rows.items():
+        cells = [f"{100 * m['success']:8.1f}"]
+        for k, w, scale in (("wrong_done", 9, 100), ("timeout", 8, 100), ("revisits", 9, 1),
+                            ("failed_moves", 9, 1)):
+            cells.append(f"{scale * m[k]:{w}.1f}" if k in m else f"{'-':>{w}}")
+        lines.append(f"{name:<22} " + " ".join(cells))
     return "\n".join(lines)
