@@ -178,7 +178,8 @@ def _transition(state: EnvState, action: jax.Array, scenes: SceneSet, params: En
     )
     reward = jnp.where(success, params.success_reward, params.step_penalty).astype(jnp.float32)
     info = {"success": success, "failed": failed, "path_len": new.path_len,
-            "optimal_len": state.optimal_len, "steps": steps}
+            "optimal_len": state.optimal_len, "steps": steps,
+            "revisited": new.revisited & ~is_done}
     return new, reward, done, info
 
 
@@ -186,7 +187,9 @@ def step_env(state: EnvState, action: jax.Array, scenes: SceneSet, params: EnvPa
     """One action, no reset -> (obs, state, reward, done, info).
 
     info: success (Done with the target visible), failed (the move left the agent in
-    place), path_len, optimal_len, steps (of the finished or running episode).
+    place), revisited (a non-Done action led to a state visited before in the episode;
+    failed moves included), path_len, optimal_len, steps (of the finished or running
+    episode).
     """
     new, reward, done, info = _transition(state, action, scenes, params)
     return observe(new, scenes), new, reward, done, info

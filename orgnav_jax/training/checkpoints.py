@@ -18,7 +18,7 @@ from pathlib import Path
 import jax
 import orbax.checkpoint as ocp
 
-from orgnav_jax.training.config import CONFIG_VERSION, TrainConfig
+from orgnav_jax.training.config import CONFIG_VERSION, READABLE_VERSIONS, TrainConfig
 
 logging.getLogger("absl").setLevel(logging.ERROR)
 
@@ -87,9 +87,10 @@ class RunCheckpoints:
         out = manager.restore(step, args=ocp.args.Composite(
             state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()))
         meta = out["meta"]
-        if meta.get("config_version") != CONFIG_VERSION:
+        if meta.get("config_version") not in READABLE_VERSIONS:
             raise ValueError(f"checkpoint {manager.directory}/{step} has config version "
-                             f"{meta.get('config_version')}, expected {CONFIG_VERSION}")
+                             f"{meta.get('config_version')}, expected one of "
+                             f"{list(READABLE_VERSIONS)}")
         return out["state"], meta
 
 

@@ -12,7 +12,15 @@ import dataclasses
 import json
 from pathlib import Path
 
-CONFIG_VERSION = 2   # 2: the split LSTM trunk (new parameter layout)
+CONFIG_VERSION = 3   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step
+READABLE_VERSIONS = (2, 3)   # configs and checkpoints this version reads (same parameters)
+# Fields a version-2 config lacks, with the values those runs were trained with.
+V2_DEFAULTS = {"il_norm": "masked_mean", "il_step": "state"}
+
+IL_MODES = ("none", "deadlock", "all", "failed")   # which steps get the imitation loss
+IL_STEPS = ("cause", "state")        # supervise the action that led into a deadlock, or
+                                     # the action taken at the deadlock state
+IL_NORMS = ("per_step", "masked_mean")   # sum / (T*N) (as the release), or mean over IL steps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,10 +36,12 @@ class TrainConfig:
     fuse_channels: int = 16
     hidden: int = 128
     lstm_layers: int = 1
-    dropout: float = 0.0
-    # imitation (trial-driven IL): none | deadlock | all | failed
+    dropout: float = 0.0              # on the global map's 1x1 layer (release: 0.25)
+    # imitation (trial-driven IL): none | deadlock | all | failed (see IL_MODES, IL_STEPS)
     il: str = "none"
     il_weight: float = 1.0
+    il_step: str = "cause"
+    il_norm: str = "per_step"
     # environment
     success_reward: float = 5.0
     step_penalty: float = -0.01
@@ -69,12 +79,13 @@ class TrainConfig:
         if self.model not in ENCODERS:
             raise ValueError(f"config field 'model': unknown model {self.model!r}, expected "
                              f"one of {sorted(ENCODERS)}")
-        if self.il not in ("none", "deadlock", "all", "failed"):
-            raise ValueError(f"config field 'il': {self.il!r}, expected none, deadlock, "
-                             "all or failed")
-        if self.dropout != 0.0:
-            raise ValueError("config field 'dropout': only 0.0 is supported for now (the "
-                             "rollout and its replay in the loss would need the same masks)")
+        for name, allowed in (("il", IL_MODES), ("il_step", IL_STEPS),
+                              ("il_norm", IL_NORMS)):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"config field {name!r}: {getattr(self, name)!r}, expected "
+                                 f"one of {list(allowed)}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"config field 'dropout' must lie in [0, 1), got {self.dropout}")
         for f in ("num_envs", "rollout_len", "hidden", "lstm_layers", "updates_per_chunk",
                   "total_env_steps", "max_steps"):
             if getattr(self, f) < 1:
@@ -140,9 +151,11 @@ def read_config(run_dir: str | Path, cls, stage: str = "nav"):
         raise ValueError(f"{path}: not a {STAGES[stage]} run, but a {STAGES.get(found, found)}"
                          " one")
     version = doc.pop("version", None)
-    if version != CONFIG_VERSION:
-        raise ValueError(f"{path}: config version {version}, this orgnav_jax reads version "
-                         f"{CONFIG_VERSION}")
+    if version == 2 and cls is TrainConfig:
+        doc = {**V2_DEFAULTS, **doc}
+    if version not in READABLE_VERSIONS:
+        raise ValueError(f"{path}: config version {version}, this orgnav_jax reads versions "
+                         f"{list(READABLE_VERSIONS)}")
     bad = sorted(set(doc) - {f.name for f in dataclasses.fields(cls)})
     if bad:
         raise ValueError(f"{path}: unknown config field(s) {bad}")

@@ -8,7 +8,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from orgnav_jax.models import model_inputs, reset_carry
+from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
 
 
 def gae(reward, value, done, last_value, gamma: float, lam: float):
@@ -27,33 +27,64 @@ def gae(reward, value, done, last_value, gamma: float, lam: float):
     return adv, adv + value
 
 
-def il_mask(mode: str, deadlock, last_failed):
-    """Steps that get the imitation loss: none | deadlock | all | failed -> (T, N) float."""
+# (il mode, il_step) -> the (T, N) bool flags of the steps that get the imitation loss.
+# "state": the step taken at a deadlock state (the state was visited before, or the
+# previous action failed); "cause": the step whose action failed, led into a visited
+# state or was Done (the release's choice). Either way the label is the expert's action
+# at the state where the supervised action was chosen.
+_IL_FLAGS = {
+    ("deadlock", "state"): lambda traj: traj.obs.deadlock,
+    ("deadlock", "cause"): lambda traj: traj.caused,
+    ("failed", "state"): lambda traj: traj.last_failed,
+    ("failed", "cause"): lambda traj: traj.failed,
+}
+
+
+def il_mask(mode: str, step: str, traj):
+    """Steps of a Trajectory that get the imitation loss -> (T, N) float32.
+    mode: none | deadlock | all | failed; step: cause | state (see _IL_FLAGS)."""
+    shape = traj.action.shape
     if mode == "none":
-        return jnp.zeros_like(deadlock, jnp.float32)
+        return jnp.zeros(shape, jnp.float32)
     if mode == "all":
-        return jnp.ones_like(deadlock, jnp.float32)
-    if mode == "failed":
-        return last_failed.astype(jnp.float32)
-    return deadlock.astype(jnp.float32)
+        return jnp.ones(shape, jnp.float32)
+    if (mode, step) not in _IL_FLAGS:
+        raise ValueError(f"unknown IL mode {mode!r} / step {step!r}: modes none, all, "
+                         f"deadlock, failed; steps cause, state")
+    return _IL_FLAGS[mode, step](traj).astype(jnp.float32)
 
 
-def imitation_loss(logits, expert_action, mask):
-    """Mean over masked steps of CE(log_softmax(logits), expert action); 0 if no step.
+def imitation_loss(logits, expert_action, mask, norm: str = "masked_mean"):
+    """CE(log_softmax(logits), expert action) over masked steps -> (loss, IL steps).
+    norm "masked_mean": mean over the masked steps (0 if none); "per_step": their sum
+    divided by all steps (mask.size), so that one IL step weighs as much as one step of
+    a per-step mean such as the policy-gradient term (the release sums both over steps).
     Steps whose expert action is NO_ACTION (< 0) are never counted."""
     mask = mask * (expert_action >= 0)
     logp = jax.nn.log_softmax(logits)
     ce = -jnp.take_along_axis(logp, jnp.maximum(expert_action, 0)[..., None], -1)[..., 0]
-    return (ce * mask).sum() / jnp.maximum(mask.sum(), 1.0), mask.sum()
+    if norm == "masked_mean":
+        denom = jnp.maximum(mask.sum(), 1.0)
+    elif norm == "per_step":
+        denom = mask.size
+    else:
+        raise ValueError(f"unknown IL normalization {norm!r}: masked_mean or per_step")
+    return (ce * mask).sum() / denom, mask.sum()
 
 
-def replay(model, params, scenes, traj, carry0):
+def replay(model, params, scenes, traj, carry0, dropout: float = 0.0):
     """Re-run the model over a trajectory from the carry at its start -> (logits (T,N,6),
     values (T,N)). The non-recurrent part runs once over all T*N steps (large matmuls);
-    only the recurrence is scanned."""
+    only the recurrence is scanned. With dropout, each step's masks are rebuilt from the
+    key the rollout kept (traj.drop_key), so the replay sees exactly the rollout's masks."""
     T, N = traj.fresh.shape
     flat_obs = jax.tree_util.tree_map(lambda x: x.reshape((T * N,) + x.shape[2:]), traj.obs)
-    gates = model.apply(params, model_inputs(scenes, flat_obs), method=model.embed)
+    inputs = model_inputs(scenes, flat_obs)
+    if dropout:
+        masks = jax.vmap(lambda k: dropout_mask(k, dropout, model.dropout_shape(N)))(
+            traj.drop_key)
+        inputs = inputs._replace(drop=masks.reshape((T * N,) + masks.shape[2:]))
+    gates = model.apply(params, inputs, method=model.embed)
 
     def body(carry, x):
         g, fresh = x
@@ -67,14 +98,14 @@ def replay(model, params, scenes, traj, carry0):
 
 def a2c_loss(params, model, scenes, traj, carry0, advantages, returns, cfg):
     """Navigation loss (policy gradient + value + entropy) + il_weight * IL -> (loss, aux)."""
-    logits, values = replay(model, params, scenes, traj, carry0)
+    logits, values = replay(model, params, scenes, traj, carry0, cfg.dropout)
     logp_all = jax.nn.log_softmax(logits)
     logp = jnp.take_along_axis(logp_all, traj.action[..., None], -1)[..., 0]
     policy_loss = -(jax.lax.stop_gradient(advantages) * logp).mean()
     value_loss = 0.5 * ((returns - values) ** 2).mean()
     entropy = -(jnp.exp(logp_all) * logp_all).sum(-1).mean()
-    mask = il_mask(cfg.il, traj.obs.deadlock, traj.last_failed)
-    il, il_steps = imitation_loss(logits, traj.expert_action, mask)
+    il, il_steps = imitation_loss(logits, traj.expert_action,
+                                  il_mask(cfg.il, cfg.il_step, traj), cfg.il_norm)
     loss = (policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
             + cfg.il_weight * il)
     aux = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,

@@ -14,7 +14,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from orgnav_jax import env
-from orgnav_jax.models import model_inputs, reset_carry
+from orgnav_jax.constants import DONE
+from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
 
 
 @struct.dataclass
@@ -40,6 +41,10 @@ class Trajectory:
     value: jax.Array
     expert_action: jax.Array  # (T, N) int32 expert's action at the step's state
     last_failed: jax.Array    # (T, N) bool: the previous action failed (part of deadlock)
+    failed: jax.Array         # (T, N) bool: this step's action failed
+    caused: jax.Array         # (T, N) bool: this step's action failed, led to a state
+                              #   visited before in the episode, or was Done (il_step cause)
+    drop_key: jax.Array | None  # (T, key) the key of each step's dropout masks, or None
 
 
 @struct.dataclass
@@ -57,18 +62,36 @@ class EpisodeStats:
         return cls(z, z, z, z, z)
 
 
-def rollout(model, runner: RunnerState, scenes, env_params: env.EnvParams, length: int):
-    """Act for `length` steps in every env -> (runner, trajectory, last value (N,), stats)."""
+def caused_deadlock(action, info):
+    """(N,) bool: the action failed, led into a state visited before in the episode, or
+    was Done (the release's trial-driven IL supervises these steps)."""
+    return info["failed"] | info["revisited"] | (action == DONE)
+
+
+def train_inputs(model, scenes, obs, key, dropout: float):
+    """model_inputs with this step's dropout mask drawn from `key` (none if dropout 0)."""
+    inputs = model_inputs(scenes, obs)
+    if dropout == 0.0:
+        return inputs
+    return inputs._replace(drop=dropout_mask(key, dropout,
+                                             model.dropout_shape(obs.state.shape[0])))
+
+
+def rollout(model, runner: RunnerState, scenes, env_params: env.EnvParams, length: int,
+            dropout: float = 0.0):
+    """Act for `length` steps in every env -> (runner, trajectory, last value (N,), stats).
+    With dropout > 0 each step draws its masks from a key kept in the trajectory."""
     num_envs = runner.fresh.shape[0]
     v_step = jax.vmap(env.step, in_axes=(0, 0, 0, None, None))
     v_observe = jax.vmap(env.observe, in_axes=(0, None))
 
     def body(carry, _):
         runner, stats = carry
-        key, k_act, k_env = jax.random.split(runner.key, 3)
+        key, k_act, k_env, k_drop = jax.random.split(runner.key, 4)
         obs = v_observe(runner.env_state, scenes)
         lstm = reset_carry(runner.carry, runner.fresh)
-        logits, value, lstm, _ = model.apply(runner.params, model_inputs(scenes, obs), lstm)
+        logits, value, lstm, _ = model.apply(
+            runner.params, train_inputs(model, scenes, obs, k_drop, dropout), lstm)
         action = jax.random.categorical(k_act, logits).astype(jnp.int32)
         st = runner.env_state
         expert = scenes.expert_action[st.scene, st.state, st.target].astype(jnp.int32)
@@ -82,7 +105,8 @@ def rollout(model, runner: RunnerState, scenes, env_params: env.EnvParams, lengt
                              stats.spl + (d * spl).sum(), stats.ret + (d * ep_return).sum(),
                              stats.length + (d * info["steps"]).sum())
         traj = Trajectory(obs, runner.fresh, action, reward, done, value, expert,
-                          st.last_failed)
+                          st.last_failed, info["failed"], caused_deadlock(action, info),
+                          k_drop if dropout else None)
         runner = runner.replace(env_state=env_state, carry=lstm, fresh=done,
                                 ep_return=jnp.where(done, 0.0, ep_return), key=key)
         return (runner, stats), traj
@@ -90,6 +114,9 @@ def rollout(model, runner: RunnerState, scenes, env_params: env.EnvParams, lengt
     (runner, stats), traj = jax.lax.scan(body, (runner, EpisodeStats.zeros()), None,
                                          length=length)
     obs = v_observe(runner.env_state, scenes)
-    _, last_value, _, _ = model.apply(runner.params, model_inputs(scenes, obs),
+    # the bootstrap value, in train mode too (a key of its own, not used by any step)
+    k_last = jax.random.fold_in(runner.key, 1)
+    _, last_value, _, _ = model.apply(runner.params,
+                                      train_inputs(model, scenes, obs, k_last, dropout),
                                       reset_carry(runner.carry, runner.fresh))
     return runner, traj, last_value, stats

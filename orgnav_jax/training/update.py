@@ -51,7 +51,7 @@ def make_train_chunk(cfg: TrainConfig, model, optimizer):
             runner, stats = carry
             carry0 = runner.carry
             runner, traj, last_value, ep = rollout(model, runner, scenes, params_env,
-                                                   cfg.rollout_len)
+                                                   cfg.rollout_len, cfg.dropout)
             adv, ret = gae(traj.reward, traj.value, traj.done, last_value, cfg.gamma,
                            cfg.gae_lambda)
             (loss, aux), grads = grad_fn(runner.params, model, scenes, traj, carry0, adv,
