@@ -20,6 +20,7 @@ test-time updates on the test split. Its options are the TPNConfig fields: see
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -127,8 +128,10 @@ def main(argv: list[str] | None = None) -> dict:
         if (args.tpn_lr or args.tpn_episodes) and not pipeline:
             raise ValueError(f"--tpn-lr and --tpn-episodes go with the presets "
                              f"{sorted(TPN_PIPELINES)}")
-        if args.resume and "run_dir" in overrides and not (set(overrides) - {"run_dir"}):
-            cfg = load_config(overrides["run_dir"])   # resume with the saved config
+        if args.resume and "run_dir" in overrides and not (
+                set(overrides) - {"run_dir", "total_env_steps"}):
+            # resume with the saved config (its budget may be extended)
+            cfg = dataclasses.replace(load_config(overrides["run_dir"]), **overrides)
         else:
             if pipeline:
                 overrides.setdefault("run_dir", f"runs/{args.preset}-small")

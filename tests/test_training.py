@@ -67,6 +67,24 @@ def test_kill_and_resume_equals_an_uninterrupted_run(tmp_path, tiny_dir):
     assert [r["env_steps"] for r in log if r["kind"] == "train"] == [256, 512, 768, 1024]
 
 
+def test_resume_may_extend_the_budget_to_match_a_longer_run(tmp_path, tiny_dir):
+    """A finished 2-chunk run resumed with a 4-chunk budget (the old budget ended on an
+    evaluation chunk) equals a 4-chunk run; a smaller budget or other options are refused."""
+    full = loop.train(small_cfg(tiny_dir, tmp_path / "full"), progress=False)
+    short = small_cfg(tiny_dir, tmp_path / "short", total_env_steps=16 * 8 * 2 * 2)
+    loop.train(short, progress=False)
+    longer = small_cfg(tiny_dir, tmp_path / "short")
+    resumed = loop.train(longer, resume=True, progress=False)
+    for a, b in zip(leaves(full["runner"]), leaves(resumed["runner"])):
+        np.testing.assert_array_equal(a, b)
+    assert load_config(tmp_path / "short").total_env_steps == longer.total_env_steps
+    with pytest.raises(ValueError, match="may only extend the budget"):
+        loop.train(short, resume=True, progress=False)
+    with pytest.raises(ValueError, match="differs from the requested config"):
+        loop.train(small_cfg(tiny_dir, tmp_path / "short", lr=1e-3), resume=True,
+                   progress=False)
+
+
 def test_interrupted_save_leaves_the_previous_checkpoint_loadable(tmp_path, tiny_dir):
     cfg = small_cfg(tiny_dir, tmp_path / "run")
     out = loop.train(cfg, progress=False, stop_after_chunks=2)

@@ -11,6 +11,7 @@ Layout of a run directory:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -100,13 +101,24 @@ def has_checkpoints(run_dir: str | os.PathLike) -> bool:
     return path.exists() and any(path.iterdir())
 
 
+BUDGET_FIELDS = ("total_env_steps", "total_episodes")   # a resume may extend these
+
+
 def check_run_dir(run_dir: str | os.PathLike, cfg, resume: bool, load_saved) -> None:
     """Before a run starts: --resume needs the saved config (load_saved(run_dir)) to equal
-    cfg; a fresh run must not overwrite checkpoints."""
+    cfg, except that the budget may grow (the run continues to the larger budget; it
+    matches a run started with that budget when the old budget ended on an evaluation
+    and checkpoint chunk); a fresh run must not overwrite checkpoints."""
     if resume:
-        if load_saved(run_dir) != cfg:
+        saved = load_saved(run_dir)
+        budget = {f: getattr(cfg, f) for f in BUDGET_FIELDS if hasattr(cfg, f)}
+        if dataclasses.replace(saved, **budget) != cfg:
             raise ValueError(f"--resume: {run_dir}/config.json differs from the requested "
                              "config; resume with the same options (or none)")
+        for f, value in budget.items():
+            if value < getattr(saved, f):
+                raise ValueError(f"--resume: {f} {value} is below the run's "
+                                 f"{getattr(saved, f)}; a resume may only extend the budget")
     elif has_checkpoints(run_dir):
         raise FileExistsError(f"{run_dir} already holds checkpoints: pass --resume to "
                               "continue it, or choose another --run-dir")

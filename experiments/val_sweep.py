@@ -1,0 +1,107 @@
+"""Choose training hyperparameters on the val split: train variants of a row, compare their
+best val success (the test split is never touched).
+
+    python experiments/val_sweep.py --name dropout --variants \\
+        baseline-d0=baseline baseline-d25=baseline:dropout=0.25 --seeds 0 \\
+        --total-env-steps 5000000
+    python experiments/val_sweep.py --name il --variants il-cause-w1=il \\
+        il-state-w1=il:il_step=state il-cause-w3=il:il_weight=3 --total-env-steps 5000000
+
+A variant is NAME=ROW[:FIELD=VALUE,...] (ROW a training preset, the fields TrainConfig
+overrides). Each (variant, seed) trains in OUT/runs/NAME-s<seed> (resumed when it has
+checkpoints, skipped when finished: rerun the same command after an interruption). After
+every run OUT/<name>.json (every run's best val record) and OUT/<name>.md (best val
+success and SPL per variant, mean over seeds) are rewritten.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from orgnav_jax.training.checkpoints import has_checkpoints
+from orgnav_jax.training.config import TrainConfig, get_config, load_config
+
+
+def parse_variant(text: str) -> tuple[str, str, dict]:
+    """'NAME=ROW:field=value,field=value' -> (NAME, ROW, {field: typed value})."""
+    name, eq, spec = text.partition("=")
+    row, _, fields = spec.partition(":")
+    if not eq or not name or not row:
+        raise argparse.ArgumentTypeError(f"variant {text!r}: expected NAME=ROW[:FIELD=VALUE,...]")
+    types = {f.name: type(f.default) for f in dataclasses.fields(TrainConfig)}
+    overrides = {}
+    for item in filter(None, fields.split(",")):
+        key, _, value = item.partition("=")
+        if key not in types:
+            raise argparse.ArgumentTypeError(f"variant {name!r}: unknown config field {key!r}")
+        kind = types[key] if types[key] in (int, float, bool) else str
+        overrides[key] = value.lower() in ("1", "true") if kind is bool else kind(value)
+    return name, row, overrides
+
+
+def best_val(run_dir: Path, up_to: int) -> dict:
+    """The best val record of a run up to `up_to` env steps (metrics.jsonl, by success
+    then SPL, as the trainer picks its best checkpoint)."""
+    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()
+               if line.strip()]
+    val = [r for r in records if r.get("kind") == "val" and r["env_steps"] <= up_to]
+    return max(val, key=lambda r: (r["success"], r["spl"]))
+
+
+def write_summary(out: Path, name: str, results: dict) -> str:
+    lines = [f"| variant | seeds | best val success | best val SPL | at env steps |",
+             "|---|---|---|---|---|"]
+    for variant, by_seed in results.items():
+        s = 100 * np.array([r["success"] for r in by_seed.values()])
+        p = 100 * np.array([r["spl"] for r in by_seed.values()])
+        steps = ", ".join(f"{r['env_steps'] / 1e6:.2f} M" for r in by_seed.values())
+        lines.append(f"| {variant} | {len(s)} | {s.mean():.1f} ± {s.std():.1f} | "
+                     f"{p.mean():.1f} ± {p.std():.1f} | {steps} |")
+    text = "\n".join(lines) + "\n"
+    (out / f"{name}.md").write_text(text)
+    (out / f"{name}.json").write_text(json.dumps(results, indent=1))
+    return text
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--name", required=True, help="the sweep's name (output file names)")
+    ap.add_argument("--variants", nargs="+", required=True, type=parse_variant)
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ap.add_argument("--total-env-steps", type=int, default=5_000_000)
+    ap.add_argument("--out", default="experiments/results/sweeps")
+    ap.add_argument("--runs", default=None,
+                    help="where the runs go (default OUT/runs); the table's runs directory "
+                         "lets a table extend the chosen variant's run to its budget")
+    args = ap.parse_args(argv)
+    from orgnav_jax.training.loop import train
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    saved = out / f"{args.name}.json"
+    results = json.loads(saved.read_text()) if saved.exists() else {}
+    for seed in args.seeds:
+        for name, row, overrides in args.variants:
+            run_dir = Path(args.runs or out / "runs") / f"{name}-s{seed}"
+            cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir),
+                                     "total_env_steps": args.total_env_steps})
+            print(f"{name} seed {seed}: {row} {overrides}", flush=True)
+            if not has_checkpoints(run_dir) or load_config(run_dir).total_env_steps <= \
+                    args.total_env_steps:      # (a run extended beyond the sweep: read it)
+                train(cfg, resume=has_checkpoints(run_dir), progress=sys.stderr.isatty())
+            record = best_val(run_dir, args.total_env_steps + cfg.steps_per_update *
+                              cfg.updates_per_chunk)
+            results.setdefault(name, {})[str(seed)] = {
+                k: record[k] for k in ("success", "spl", "env_steps")} | {
+                "row": row, "overrides": overrides}
+            print(write_summary(out, args.name, results), flush=True)
+
+
+if __name__ == "__main__":
+    main()
