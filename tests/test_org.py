@@ -151,15 +151,6 @@ def test_cooccurrence_adjacency_from_hand_made_presence():
     np.testing.assert_allclose(raw[0, 2], 2 / math.sqrt(4 * 2), atol=1e-6)
 
 
-def test_il_mask_modes_on_hand_made_deadlocks():
-    deadlock = jnp.array([[0, 1], [1, 0], [0, 0], [1, 1]], bool)
-    failed = jnp.array([[0, 1], [0, 0], [0, 0], [1, 0]], bool)
-    np.testing.assert_array_equal(il_mask("deadlock", deadlock, failed), deadlock.astype(float))
-    np.testing.assert_array_equal(il_mask("failed", deadlock, failed), failed.astype(float))
-    np.testing.assert_array_equal(il_mask("all", deadlock, failed), np.ones((4, 2)))
-    np.testing.assert_array_equal(il_mask("none", deadlock, failed), np.zeros((4, 2)))
-
-
 def test_il_mask_is_the_deadlock_steps_of_an_episode(tiny_scenes):
     """A hand-chosen episode: a failed MoveAhead, then rotations back into visited states."""
     train = tiny_scenes.split_view("train").to_device()
@@ -185,12 +176,13 @@ def test_il_mask_is_the_deadlock_steps_of_an_episode(tiny_scenes):
     expected = np.array([0, 1, 0, 1, 0, 1], float)
     # independent check: a step is a deadlock iff its state was visited before
     np.testing.assert_array_equal(expected, [s in states[:t] for t, s in enumerate(states)])
-    deadlock = jnp.stack(deadlock)[:, None]          # (T, N=1)
-    failed = jnp.stack(failed)[:, None]
-    np.testing.assert_array_equal(np.asarray(il_mask("deadlock", deadlock, failed))[:, 0],
-                                  expected)
-    np.testing.assert_array_equal(np.asarray(il_mask("failed", deadlock, failed))[:, 0],
-                                  [0, 1, 0, 0, 0, 0])
+    traj = SimpleNamespace(action=jnp.zeros((len(states), 1), jnp.int32),
+                           obs=SimpleNamespace(deadlock=jnp.stack(deadlock)[:, None]),
+                           last_failed=jnp.stack(failed)[:, None])     # (T, N=1)
+    np.testing.assert_array_equal(
+        np.asarray(il_mask("deadlock", "state", traj))[:, 0], expected)
+    np.testing.assert_array_equal(
+        np.asarray(il_mask("failed", "state", traj))[:, 0], [0, 1, 0, 0, 0, 0])
 
 
 def test_imitation_loss_equals_hand_computed_value():
