@@ -51,7 +51,12 @@ from orgnav_jax.tpn.policy import build_tpn, default_batch_size, init_tpn_params
 from orgnav_jax.training.config import get_config
 from orgnav_jax.training.policy import model_policy
 
-VARIANTS = {"tpn": {}, "tpn-all": {"when": "all"}, "tpn-trunk": {"scope": "trunk"}}
+# name -> (TPNConfig fields, fast-weights impl)
+VARIANTS = {"tpn": ({"scope": "actor"}, "auto"),
+            "tpn-all": ({"scope": "actor", "when": "all"}, "auto"),
+            "tpn-params": ({"scope": "all"}, "lowrank"),
+            "tpn-params-dense": ({"scope": "all"}, "dense")}
+DEFAULT_VARIANTS = ["tpn", "tpn-all", "tpn-params"]
 
 
 def time_policy(policy, params, scenes, episodes, steps: int, repeats: int):
@@ -77,7 +82,7 @@ def main() -> None:
     ap.add_argument("--model", default="baseline")
     ap.add_argument("--num-envs", type=int, nargs="+", default=[256, 1000])
     ap.add_argument("--steps", type=int, default=100, help="steps per episode batch")
-    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS, choices=list(VARIANTS))
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
     print(f"jax {jax.__version__} backend {jax.default_backend()}", flush=True)
@@ -99,11 +104,12 @@ def main() -> None:
                              env_steps_per_s=round(plain, 1), compile_s=round(c, 2),
                              ratio_to_plain=1.0))
             for name in args.variants:
-                tcfg = get_tpn_config(**VARIANTS[name])
+                fields, impl = VARIANTS[name]
+                tcfg = get_tpn_config(**fields)
                 tpn = build_tpn(cfg, tcfg)
                 pp = {"base": params, "tpn": init_tpn_params(tpn, cfg, jax.random.PRNGKey(1))}
-                b = min(n, default_batch_size(params, tcfg.scope))   # fast weights must fit
-                sps, c = time_policy(tpn_policy(model, tpn, tcfg, name), pp, scenes,
+                b = n if impl != "dense" else min(n, default_batch_size(params, tcfg, impl))
+                sps, c = time_policy(tpn_policy(model, tpn, tcfg, name, 0.0, impl), pp, scenes,
                                      episodes.subset(np.arange(b)), args.steps, args.repeats)
                 rows.append(dict(preset=preset, policy=name, num_envs=b,
                                  env_steps_per_s=round(sps, 1), compile_s=round(c, 2),

@@ -12,7 +12,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-from orgnav_jax.training.config import CONFIG_VERSION, read_config
+from orgnav_jax.training.config import CONFIG_VERSION, _parse_bool, read_config
 
 SCOPES = ("actor", "trunk", "all")          # parameters a test-time update changes
 DETECTORS = ("visited", "cosine")           # external memory: visited set or feature match
@@ -50,6 +50,9 @@ class TPNConfig:
     scope: str = "actor"              # actor head | trunk (above the encoder) | all
     when: str = "deadlock"
     target: str = "tpn"
+    reset_every: int = 50             # fast weights back to the trained ones every N steps
+                                      # of an episode (the release's 50); 0: at its start only
+    tpn_train_mode: bool = False      # the release's confound: dropout active with TPN
 
     @property
     def num_updates(self) -> int:
@@ -65,6 +68,9 @@ class TPNConfig:
                   "updates_per_chunk", "signature_dim"):
             if getattr(self, f) < 1:
                 raise ValueError(f"TPN config field {f!r} must be >= 1, got {getattr(self, f)}")
+        if self.reset_every < 0:
+            raise ValueError("TPN config field 'reset_every' must be >= 0 (0: reset at "
+                             f"episode starts only), got {self.reset_every}")
         if not -1.0 <= self.cosine_threshold <= 1.0:
             raise ValueError("TPN config field 'cosine_threshold' must lie in [-1, 1]")
         return self
@@ -98,7 +104,8 @@ def load_tpn_config(run_dir: str | Path) -> TPNConfig:
     return read_config(run_dir, TPNConfig, stage="tpn")
 
 
-TEST_TIME_FIELDS = ("tpn_lr", "scope", "when", "target", "deadlock", "cosine_threshold")
+TEST_TIME_FIELDS = ("tpn_lr", "scope", "when", "target", "deadlock", "cosine_threshold",
+                    "reset_every", "tpn_train_mode")
 
 
 def add_tpn_arguments(ap: argparse.ArgumentParser, fields=None) -> None:
@@ -108,7 +115,7 @@ def add_tpn_arguments(ap: argparse.ArgumentParser, fields=None) -> None:
     for f in dataclasses.fields(TPNConfig):
         if fields is not None and f.name not in fields:
             continue
-        kind = {int: int, float: float}.get(type(f.default), str)
+        kind = {bool: _parse_bool, int: int, float: float}.get(type(f.default), str)
         flag = "base" if f.name == "base_dir" else f.name.replace("_", "-")
         group.add_argument("--" + flag, dest="tpn__" + f.name, type=kind, default=None,
                            metavar=type(f.default).__name__.upper())

@@ -1,9 +1,14 @@
-"""Per-episode fast weights for TPN's test-time update.
+"""Per-episode fast weights for TPN's test-time update: dense copies.
 
 A scope of the navigation model's variables (the actor head, the trunk above the
 encoder, or all) is split off and copied once per environment; those copies are the only
 parameters a test-time update changes, so an update in one episode never reaches another
-episode or environment.
+episode or environment. This is the test-time path of the actor scope (6 x H weights per
+episode, and the model up to the LSTM runs once, shared); for the trunk or all parameters
+a full copy per episode is memory-bound (50x slower than plain evaluation), and
+tpn/lowrank.py keeps them as low-rank deltas instead. `DenseFastWeights` stays the
+reference those are tested against. The gradient is truncated to the current step (the
+LSTM carry from the previous step is an input, a constant).
 
 A step is split in two: `shared` runs, batched, everything the fast weights do not
 touch (for the actor scope: the whole model up to the LSTM output; otherwise nothing),
@@ -15,6 +20,10 @@ it). Only `per_env` is differentiated and re-run after an update.
     features = shared(variables, inputs, carry)                        # batched
     logits, carry, h = per_env(scoped, rest, features_b)               # one env
     scoped = sgd_step(per_env, scoped, rest, features_b, target, lr)   # CE(policy, target)
+
+    fw = DenseFastWeights(model, "all")        # the step interface tpn/policy.py drives
+    fast = fw.init(B, variables)
+    logits, lstm, fast, aux = fw.step(variables, fast, inputs, carry, decide, lr)
 """
 
 from __future__ import annotations
@@ -22,7 +31,10 @@ from __future__ import annotations
 import functools
 
 import jax
+import jax.numpy as jnp
 from flax import traverse_util
+
+from orgnav_jax.evaluation import where_rows
 
 SCOPE_PATHS = {"actor": ("params", "trunk", "actor"),     # the policy head
                "trunk": ("params", "trunk"),              # everything above the encoder
@@ -91,6 +103,11 @@ def policy_ce(logits, target):
     return -jax.nn.log_softmax(logits)[target]
 
 
+def policy_ce_grad(logits, target):
+    """Gradient of policy_ce with respect to the logits, batched: (B, 6), (B,) -> (B, 6)."""
+    return jax.nn.softmax(logits) - jax.nn.one_hot(target, logits.shape[-1])
+
+
 def sgd_step(per_env, scoped, rest, features, target, lr):
     """One SGD step of CE(policy logits, target) on one environment's fast weights."""
     grads = jax.grad(lambda s: policy_ce(per_env(s, rest, features)[0], target))(scoped)
@@ -100,3 +117,49 @@ def sgd_step(per_env, scoped, rest, features, target, lr):
 def scope_size(variables, scope: str) -> int:
     """Number of parameters one environment's fast weights hold."""
     return sum(int(v.size) for v in split_scope(variables, scope)[0].values())
+
+
+def tile(tree, batch: int):
+    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), tree)
+
+
+class DenseFastWeights:
+    """Full per-episode copies of a scope's parameters (see module docstring), with the
+    step interface of lowrank.LowRankFastWeights."""
+
+    def __init__(self, model, scope: str):
+        self.model, self.scope = model, scope
+        self.shared, per_env = split_step(model, scope)
+        self.per_env = per_env
+        self.v_per_env = jax.vmap(per_env, in_axes=(0, None, 0))
+        self.v_sgd = jax.vmap(sgd_step, in_axes=(None, 0, None, 0, 0, None))
+
+    def __hash__(self):
+        return hash((self.model, self.scope))
+
+    def __eq__(self, other):
+        return isinstance(other, DenseFastWeights) and (self.model, self.scope) == (
+            other.model, other.scope)
+
+    def init(self, batch: int, base):
+        return tile(split_scope(base, self.scope)[0], batch)
+
+    def reset(self, base, fast, mask):
+        """mask (B,) bool: those rows go back to the trained weights."""
+        return where_rows(mask, self.init(mask.shape[0], base), fast)
+
+    def step(self, base, fast, inputs, carry, decide, lr):
+        """As LowRankFastWeights.step: -> (logits (B, 6), carry, fast, aux)."""
+        _, rest = split_scope(base, self.scope)
+        features = self.shared(base, inputs, carry)
+        logits, lstm, h = self.v_per_env(fast, rest, features)
+        target, update, aux = decide(logits, h)
+        fast = where_rows(update, self.v_sgd(self.per_env, fast, rest, features, target, lr),
+                          fast)
+        logits2, lstm2, _ = self.v_per_env(fast, rest, features)   # act with the new weights
+        logits, lstm = where_rows(update, (logits2, lstm2), (logits, lstm))
+        return logits, lstm, fast, aux
+
+    def materialize(self, base, fast):
+        """-> {path: (B, ...)} the scope's weights of each episode."""
+        return fast

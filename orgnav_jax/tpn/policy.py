@@ -24,22 +24,27 @@ from flax import struct
 
 from orgnav_jax.constants import NUM_ACTIONS
 from orgnav_jax.env import EnvParams
-from orgnav_jax.evaluation import Policy, where_rows
-from orgnav_jax.models import model_inputs, reset_carry
+from orgnav_jax.evaluation import Policy
+from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
 from orgnav_jax.models.tpn import TPN, memory_init, memory_record, memory_reset
 from orgnav_jax.tpn.config import TPNConfig, get_tpn_config, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
-from orgnav_jax.tpn.fast_weights import scope_size, sgd_step, split_scope, split_step
+from orgnav_jax.tpn.fast_weights import DenseFastWeights, scope_size, tile  # noqa: F401
+from orgnav_jax.tpn.lowrank import LowRankFastWeights, make_plan, plan_floats
 
 
 @struct.dataclass
 class TPNCarry:
     """Per-environment state of the policy (leading axis B everywhere)."""
     lstm: Any           # the base model's LSTM carry
-    fast: Any           # the episode's fast weights (the scope's parameters)
+    fast: Any           # the episode's fast weights (dense copies or a LowRankState)
     memory: Any         # models.tpn.TPNMemory (internal memory)
     vision: Any         # the deadlock detector's memory (None for "visited")
     updates: jax.Array  # (B,) int32 test-time updates in the running episode
+    steps: jax.Array    # (B,) int32 index of the step in the running episode
+
+
+IMPLS = ("auto", "dense", "lowrank")
 
 
 def build_tpn(nav_cfg, cfg: TPNConfig) -> TPN:
@@ -47,47 +52,67 @@ def build_tpn(nav_cfg, cfg: TPNConfig) -> TPN:
                top_k=cfg.top_k)
 
 
-def tile(tree, batch: int):
-    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), tree)
+def update_slots(cfg: TPNConfig) -> int:
+    """Updates an episode can take between two resets (one per step at most)."""
+    longest = max(EnvParams.evaluation().max_steps)
+    return min(cfg.reset_every, longest) if cfg.reset_every > 0 else longest
+
+
+def fast_weights(model, cfg: TPNConfig, base_params, impl: str = "auto"):
+    """The per-episode fast weights of cfg.scope: dense copies for the actor head (the
+    model up to the LSTM runs once, shared), low-rank LSTM deltas otherwise ("auto");
+    or forced ("dense": the reference, "lowrank")."""
+    if impl not in IMPLS:
+        raise ValueError(f"fast weights impl {impl!r}: expected one of {IMPLS}")
+    if impl == "dense" or (impl == "auto" and cfg.scope == "actor"):
+        return DenseFastWeights(model, cfg.scope)
+    return LowRankFastWeights(model, make_plan(base_params, cfg.scope, update_slots(cfg)))
 
 
 @functools.cache
-def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN") -> Policy:
-    """policy_params = {"base": navigation variables, "tpn": TPN variables}."""
-    shared, per_env = split_step(model, cfg.scope)
-    v_per_env = jax.vmap(per_env, in_axes=(0, None, 0))
-    v_sgd = jax.vmap(sgd_step, in_axes=(None, 0, None, 0, 0, None))
-
+def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN", dropout: float = 0.0,
+               impl: str = "auto") -> Policy:
+    """policy_params = {"base": navigation variables, "tpn": TPN variables}. `dropout`:
+    the navigation model's rate, used with cfg.tpn_train_mode only."""
     def init(batch, params):
-        scoped, _ = split_scope(params["base"], cfg.scope)
+        fw = fast_weights(model, cfg, params["base"], impl)
         size = max(EnvParams.evaluation().max_steps)       # the longest test episode
-        return TPNCarry(model.initial_carry(batch), tile(scoped, batch),
+        zeros = jnp.zeros(batch, jnp.int32)
+        return TPNCarry(model.initial_carry(batch), fw.init(batch, params["base"]),
                         memory_init(batch, size, tpn.hidden), detector_init(cfg, batch, size),
-                        jnp.zeros(batch, jnp.int32))
+                        zeros, zeros)
 
     def act(params, carry: TPNCarry, obs, key, scenes, fresh):
-        base_scoped, rest = split_scope(params["base"], cfg.scope)
-        fast = where_rows(fresh, tile(base_scoped, fresh.shape[0]), carry.fast)
+        fw = fast_weights(model, cfg, params["base"], impl)
+        B = fresh.shape[0]
+        steps = jnp.where(fresh, 0, carry.steps + 1)
+        reset = fresh if cfg.reset_every <= 0 else fresh | (steps % cfg.reset_every == 0)
+        fast = fw.reset(params["base"], carry.fast, reset)
         inputs = model_inputs(scenes, obs)
-        features = shared(params["base"], inputs, reset_carry(carry.lstm, fresh))
-        logits, lstm, h = v_per_env(fast, rest, features)
-        tpn_logits, r, memory = tpn.apply(params["tpn"], h, memory_reset(carry.memory, fresh),
-                                          method=tpn.step_logits)
-        deadlock, vision = detect(cfg, carry.vision, obs.deadlock, inputs.glob, fresh)
-        update = deadlock if cfg.when == "deadlock" else jnp.ones_like(deadlock)
-        if cfg.target == "tpn":
-            target = jnp.argmax(tpn_logits, -1)
-        else:
-            target = jax.random.randint(key, fresh.shape, 0, NUM_ACTIONS)
-        fast = where_rows(update, v_sgd(per_env, fast, rest, features, target, cfg.tpn_lr),
-                           fast)
-        # act with the updated weights (only rows that updated change)
-        logits2, lstm2, _ = v_per_env(fast, rest, features)
-        logits, lstm = where_rows(update, (logits2, lstm2), (logits, lstm))
+        if cfg.tpn_train_mode:       # the release's "+TPN" evaluation: dropout active
+            inputs = inputs._replace(drop=dropout_mask(
+                jax.random.fold_in(key, 1), dropout, model.dropout_shape(B)))
+
+        def decide(logits, h):
+            tpn_logits, r, memory = tpn.apply(params["tpn"], h,
+                                              memory_reset(carry.memory, fresh),
+                                              method=tpn.step_logits)
+            deadlock, vision = detect(cfg, carry.vision, obs.deadlock, inputs.glob, fresh)
+            update = deadlock if cfg.when == "deadlock" else jnp.ones_like(deadlock)
+            if cfg.target == "tpn":
+                target = jnp.argmax(tpn_logits, -1)
+            else:
+                target = jax.random.randint(key, fresh.shape, 0, NUM_ACTIONS)
+            return target, update, (update, r, memory, vision)
+
+        # the model with the episode's fast weights; updating rows take one SGD step and
+        # act with the updated weights
+        logits, lstm, fast, (update, r, memory, vision) = fw.step(
+            params["base"], fast, inputs, reset_carry(carry.lstm, fresh), decide, cfg.tpn_lr)
         memory = memory_record(memory, r, jax.nn.softmax(logits))
         updates = jnp.where(fresh, 0, carry.updates) + update.astype(jnp.int32)
-        return jnp.argmax(logits, -1).astype(jnp.int32), TPNCarry(lstm, fast, memory, vision,
-                                                                   updates)
+        return jnp.argmax(logits, -1).astype(jnp.int32), TPNCarry(
+            lstm, fast, memory, vision, updates, steps)
 
     return Policy(name, init, act)
 
@@ -109,16 +134,24 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
     tpn_params, _ = ckpt.restore(like, best=True)
     name = f"{nav_cfg.model}+TPN" + ("" if cfg.when == "deadlock" else f"-{cfg.when}") + \
         ("" if cfg.target == "tpn" else f"-{cfg.target}")
-    return tpn_policy(model, tpn, cfg.test_time(), name), \
+    return tpn_policy(model, tpn, cfg.test_time(), name,
+                      float(getattr(nav_cfg, "dropout", 0.0))), \
         {"base": base_params, "tpn": tpn_params}, nav_cfg, cfg
 
 
-def default_batch_size(base_params, scope: str, budget_bytes: float = 5e8) -> int:
-    """Episodes per evaluation batch so that the fast weights (with their update and
-    gradient copies) stay within budget_bytes: 1000 for the actor head, fewer for the
-    trunk or all parameters."""
-    per_env = 3 * 4 * scope_size(base_params, scope)
-    return int(max(16, min(1000, budget_bytes // per_env)))
+def default_batch_size(base_params, cfg: TPNConfig | str, impl: str = "auto",
+                       budget_bytes: float = 2e9) -> int:
+    """Episodes per evaluation batch (16 to 1000) so that the fast weights, with their
+    gradient and update copies, stay within budget_bytes. `cfg`: the TPNConfig (or just a
+    scope, with the default reset_every)."""
+    cfg = cfg if isinstance(cfg, TPNConfig) else TPNConfig(scope=cfg)
+    if impl == "dense" or (impl == "auto" and cfg.scope == "actor"):
+        floats = 3 * scope_size(base_params, cfg.scope)
+    else:
+        dense, slots = plan_floats(base_params, make_plan(base_params, cfg.scope,
+                                                          update_slots(cfg)))
+        floats = 3 * dense + 2 * slots
+    return int(max(16, min(1000, budget_bytes // (4 * floats))))
 
 
 def init_tpn_params(tpn: TPN, nav_cfg, key):
