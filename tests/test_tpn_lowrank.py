@@ -103,3 +103,112 @@ def test_lowrank_fast_weights_equal_dense_copies(setup, test_split, name):
     assert [int(c) for c in low[2].fast.count] == [2] * B     # + the newest, not yet written
     assert [int(c) for c in low[3].fast.count] == [0] * B     # reset at step 3
     assert bool(low[3].fast.newest_on.all())
+
+
+@pytest.mark.parametrize("scope", ["actor", "all"])
+def test_updates_never_leak_across_environments_or_episodes(setup, test_split, scope):
+    model, params, tpn, tpn_params = setup("baseline")
+    cfg = get_tpn_config(scope=scope, tpn_lr=0.5).test_time()
+    policy = tpn_policy(model, tpn, cfg)
+    pparams = {"base": params, "tpn": tpn_params}
+    # env 0 is in deadlock at every step, envs 1 and 2 never are
+    obs = observations(test_split, 4, deadlock=[True, False, False])
+    T, F = True, False
+    carries = drive(policy, pparams, test_split, obs, [[T, T, T], [F, F, F], [F, F, F],
+                                                      [T, F, F]])
+    w = [weights(model, cfg, params, "auto", c) for c in carries]
+    trained = {k: np.asarray(v) for k, v in traverse_util.flatten_dict(params).items()}
+    same = lambda a, b: all(np.array_equal(a[k], b[k]) for k in a)
+    row = lambda ws, i: {k: v[i] for k, v in ws.items()}
+    # env 0 updated; the others act with the trained weights (no leak across environments)
+    assert not same(row(w[2], 0), trained)
+    assert same(row(w[2], 1), trained) and same(row(w[2], 2), trained)
+    assert [int(u) for u in carries[2].updates] == [3, 0, 0]
+    # a new episode in env 0 starts from the trained weights (no leak across episodes):
+    # after its first step it holds exactly one update from them, as in a first episode
+    first = weights(model, cfg, params, "auto", drive(policy, pparams, test_split, obs[3:],
+                                                      [[T, T, T]])[0])
+    for k in w[3]:
+        np.testing.assert_allclose(w[3][k][0], first[k][0], rtol=1e-6, atol=1e-7)
+    assert int(carries[3].updates[0]) == 1
+    # envs 1 and 2 are still untouched
+    assert same(row(w[3], 1), trained) and same(row(w[3], 2), trained)
+
+
+def step_probs(model, params, inputs, lstm):
+    return np.asarray(jax.nn.softmax(model.apply(params, inputs, lstm)[0]))
+
+
+def test_reset_every_restores_the_trained_weights(setup, test_split):
+    """Deadlocks at steps 0-2, none at step 3: with reset_every=3 the policy at step 3
+    is the trained model's (same LSTM state); without resets it is not."""
+    model, params, tpn, tpn_params = setup("baseline")
+    pparams = {"base": params, "tpn": tpn_params}
+    obs = [o.replace(deadlock=jnp.full(B, t < 3))
+           for t, o in enumerate(observations(test_split, 4))]
+    fresh = [[True] * B] + [[False] * B] * 3
+    inputs3 = model_inputs(test_split, obs[3])
+    for reset_every, equal in ((3, True), (0, False)):
+        cfg = get_tpn_config(scope="all", tpn_lr=0.5, reset_every=reset_every).test_time()
+        carries = drive(tpn_policy(model, tpn, cfg), pparams, test_split, obs, fresh)
+        trained = step_probs(model, params, inputs3, carries[2].lstm)
+        acted = np.asarray(carries[3].memory.prev_probs)       # softmax of step 3's logits
+        assert np.allclose(acted, trained, rtol=1e-5, atol=1e-6) == equal, reset_every
+        assert [int(u) for u in carries[3].updates] == [3] * B
+        assert [int(s) for s in carries[3].steps] == [3] * B
+
+
+def test_train_mode_is_dropout_during_the_tpn_evaluation(setup, test_split):
+    """--tpn-train-mode: with dropout 0 nothing changes; with dropout > 0 the policy
+    differs (a fresh mask each step); without the flag the dropout rate is unused."""
+    model, params, tpn, tpn_params = setup("baseline")
+    pparams = {"base": params, "tpn": tpn_params}
+    obs = observations(test_split, 3, deadlock=[True, False, True])
+    fresh = [[True] * B] + [[False] * B] * 2
+
+    def probs(dropout, train_mode):
+        cfg = get_tpn_config(scope="all", tpn_lr=0.1, tpn_train_mode=train_mode).test_time()
+        carries = drive(tpn_policy(model, tpn, cfg, "x", dropout), pparams, test_split, obs,
+                        fresh)
+        return np.stack([np.asarray(c.memory.prev_probs) for c in carries])
+
+    off = probs(0.0, False)
+    np.testing.assert_array_equal(probs(0.0, True), off)
+    np.testing.assert_array_equal(probs(0.5, False), off)
+    on = probs(0.5, True)
+    assert np.abs(on - off).max() > 1e-3
+    np.testing.assert_array_equal(probs(0.5, True), on)          # deterministic per key
+
+
+def test_the_evaluation_compiles_once(setup, test_split):
+    """Three batches of episodes, one trace of the policy step (and so one compile)."""
+    model, params, tpn, tpn_params = setup("org")
+    base = tpn_policy(model, tpn, get_tpn_config(scope="all", tpn_lr=1e-2).test_time())
+    traces = []
+
+    def act(*args):
+        traces.append(1)
+        return base.act(*args)
+
+    policy = evaluation.Policy("counted", base.init, act)
+    episodes = sample_episodes(test_split, 3, seed=0, split="test")
+    out = evaluation.run_episodes(policy, {"base": params, "tpn": tpn_params}, test_split,
+                                  episodes, env.EnvParams.evaluation(), batch_size=4)
+    assert len(out["success"]) == len(episodes) == 12 and len(traces) == 1
+
+
+def test_cli_options_and_batch_size(setup):
+    args = evaluate.parser().parse_args(["--tpn", "x", "--tpn-train-mode", "true",
+                                         "--reset-every", "0", "--scope", "all"])
+    assert tpn_overrides_from_args(args) == {"tpn_train_mode": True, "reset_every": 0,
+                                             "scope": "all"}
+    with pytest.raises(SystemExit):
+        evaluate.parser().parse_args(["--tpn", "x", "--tpn-train-mode", "maybe"])
+    with pytest.raises(ValueError, match="reset_every"):
+        get_tpn_config(reset_every=-1)
+    _, params, _, _ = setup("baseline")
+    # low-rank state: far smaller than a copy of the LSTM, so far larger batches
+    dense, slots = plan_floats(params, make_plan(params, "all", 50))
+    assert dense + slots < sum(int(v.size) for v in jax.tree_util.tree_leaves(params))
+    assert default_batch_size(params, get_tpn_config(scope="all")) > default_batch_size(
+        params, "all", impl="dense")

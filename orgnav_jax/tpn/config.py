@@ -47,7 +47,7 @@ class TPNConfig:
     run_dir: str = ""                 # default: <base_dir>/tpn
     # test time (evaluation with --tpn)
     tpn_lr: float = 1e-4              # one SGD step per update step
-    scope: str = "actor"              # actor head | trunk (above the encoder) | all
+    scope: str = "all"                # all (the release's) | trunk (above the encoder) | actor
     when: str = "deadlock"
     target: str = "tpn"
     reset_every: int = 50             # fast weights back to the trained ones every N steps

@@ -274,9 +274,9 @@ class LowRankFastWeights:
 
         logits, vjp_fn, (lstm, h, seen) = jax.vjp(forward, state.dense, perts, has_aux=True)
         target, update, aux = decide(logits, h)
+        # rows that do not update get a zero cotangent, so a zero gradient: p - lr * 0 = p
         g_dense, g_gates = vjp_fn(policy_ce_grad(logits, target) * update[:, None])
         dense = jax.tree_util.tree_map(lambda p, g: p - lr * g, state.dense, g_dense)
-        dense = where_rows(update, dense, state.dense)
         newest = {s.key: {"x": seen[s.key]["x"], "h": seen[s.key]["h"],
                           "v": -lr * g_gates[s.key]} for s in self.plan.sites}
         new = state.replace(dense=dense, newest=newest, newest_on=update)

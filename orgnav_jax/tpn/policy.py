@@ -140,11 +140,14 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
 
 
 def default_batch_size(base_params, cfg: TPNConfig | str, impl: str = "auto",
-                       budget_bytes: float = 2e9) -> int:
+                       budget_bytes: float = 4e9) -> int:
     """Episodes per evaluation batch (16 to 1000) so that the fast weights, with their
-    gradient and update copies, stay within budget_bytes. `cfg`: the TPNConfig (or just a
-    scope, with the default reset_every)."""
-    cfg = cfg if isinstance(cfg, TPNConfig) else TPNConfig(scope=cfg)
+    gradient and update copies, stay within budget_bytes. `cfg`: the TPNConfig, or just a
+    scope (then the slots of reset_every=0, the most an episode can need). At the paper's
+    widths, all parameters: 1000 with reset_every 50, 400 with 0; dense copies of the
+    trunk: 16."""
+    if isinstance(cfg, str):
+        cfg = TPNConfig(scope=cfg, reset_every=0)
     if impl == "dense" or (impl == "auto" and cfg.scope == "actor"):
         floats = 3 * scope_size(base_params, cfg.scope)
     else:
