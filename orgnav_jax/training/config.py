@@ -40,7 +40,7 @@ class TrainConfig:
     # imitation (trial-driven IL): none | deadlock | all | failed (see IL_MODES, IL_STEPS)
     il: str = "none"
     il_weight: float = 1.0
-    il_step: str = "cause"
+    il_step: str = "state"
     il_norm: str = "per_step"
     # environment
     success_reward: float = 5.0
