@@ -15,11 +15,12 @@ failed moves); at the end OUT/curves.png shows the val learning curves of the no
 rows (python -m orgnav_jax.plots curves). Rows already in OUT/results.json from earlier
 invocations stay. Extra `--FIELD VALUE` options apply to every row.
 
-A row BASE+VARIANT (VARIANT in tpn, tpn_all, tpn_random) uses the run of row BASE (trained
+A row BASE+VARIANT (VARIANT in tpn, tpn_all, tpn_random, tpn_cosine, tpn_train_mode) uses the run of row BASE (trained
 first if needed), trains its TPN (stage 2) in OUT/runs/BASE-s<seed>/tpn once, and
 evaluates it with that variant of the test-time update (Table 2: "all" updates on every
 step, "random" takes a random action as the target; "cosine" detects deadlocks by the
-paper's global-feature match instead of the visited set). Baseline+TPN is baseline+tpn; the
+paper's global-feature match instead of the visited set; "train_mode" runs the network
+with dropout during the TPN evaluation, as the release did). Baseline+TPN is baseline+tpn; the
 full model (ORG+IL+TPN) is org_il+tpn. A suffix @LR sets the test-time learning rate
 (default 1e-4), e.g. org_il+tpn@1e-3.
 """
@@ -44,7 +45,8 @@ FAILURE_METRICS = (("wrong_done", "wrong Done", 100), ("timeout", "timeout", 100
                    ("revisits", "revisits/ep", 1), ("failed_moves", "failed moves/ep", 1))
 # test-time variants of a TPN row (TPNConfig fields)
 TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": "random"},
-                "tpn_cosine": {"deadlock": "cosine"}}
+                "tpn_cosine": {"deadlock": "cosine"},
+                "tpn_train_mode": {"tpn_train_mode": True}}   # the release's dropout confound
 
 
 def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -> dict:

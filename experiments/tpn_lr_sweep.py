@@ -21,7 +21,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("tpn_dir")
     ap.add_argument("--lrs", type=float, nargs="+", default=[0.0, 1e-4, 1e-3, 1e-2, 1e-1, 1.0])
-    ap.add_argument("--scope", default="actor")
+    ap.add_argument("--scope", default="all", help="fast-weight scope (default all)")
     ap.add_argument("--split", default="val")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
