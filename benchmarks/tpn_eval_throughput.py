@@ -8,18 +8,19 @@ evaluation scan (`evaluation._run_batch`: B episodes, `--steps` steps, vmapped e
 policy) for:
 
 * plain:  the navigation model alone (greedy);
-* tpn:    + TPN (internal memory read every step) and one SGD step on deadlock steps
-          (fast weights = the actor head, the default scope); the action comes from the
-          updated weights (the model runs once; only the head is differentiated and re-run);
+* tpn:    + TPN (internal memory read every step) and one SGD step on deadlock steps of
+          the actor head (`--scope actor`): the model up to the LSTM runs once, shared;
+          the action comes from the updated weights;
 * tpn-all:  as tpn, updating on every step (Table 2's "all");
-* tpn-trunk: as tpn, with the whole trunk above the encoder as fast weights.
+* tpn-params: as tpn, on all parameters of the navigation network (`--scope all`, the
+          default): low-rank fast weights (tpn/lowrank.py, reset_every 50: 50 slots);
+          the model runs forward, backward and again with the updated weights;
+* tpn-params-dense (not run by default): the same with a full copy of all parameters
+          per episode (the reference implementation), at the batch
+          `tpn.policy.default_batch_size` allows it (it reports the batch it ran).
 
-The fast weights of tpn-trunk hold the LSTM, one copy per episode; the batch is cut to
-`tpn.policy.default_batch_size` (what `evaluate --tpn` uses) so they fit in memory, and
-the row reports the batch it ran (a second row with an equal batch reuses the compiled
-program: compile 0). Under vmap both branches of "update or not" are computed on every
-step, so the cost does not depend on how many steps are deadlocks: the numbers are the
-worst case. Weights are
+Under vmap both branches of "update or not" are computed on every step, so the cost does
+not depend on how many steps are deadlocks: the numbers are the worst case. Weights are
 freshly initialised (throughput does not depend on them: the scan runs all `--steps`).
 Scenes: the tiny preset with the preset's feature projections swapped in (as in
 train_throughput.py). Compile time is reported apart.

@@ -15,7 +15,7 @@ from orgnav_jax import env, evaluate, evaluation
 from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import build_model, init_params, model_inputs
 from orgnav_jax.tpn.config import get_tpn_config, tpn_overrides_from_args
-from orgnav_jax.tpn.lowrank import make_plan, plan_floats
+from orgnav_jax.tpn.lowrank import SLOT_BLOCK, make_plan, plan_floats
 from orgnav_jax.tpn.policy import (build_tpn, default_batch_size, fast_weights,
                                    init_tpn_params, tpn_policy)
 from orgnav_jax.training.config import get_config
@@ -43,14 +43,19 @@ def test_split(tiny_scenes):
     return tiny_scenes.split_view("test").to_device()
 
 
+@jax.jit
+def _first_obs(key, test):
+    _, state = jax.vmap(env.reset, in_axes=(0, None, None))(
+        jax.random.split(key, B), test, env.EnvParams.evaluation())
+    return jax.vmap(env.observe, in_axes=(0, None))(state, test)
+
+
 def observations(test, steps: int, deadlock=None):
     """`steps` batches of B observations of random states (a new one every step);
     deadlock (B,) overrides the env's flag."""
     out = []
     for t in range(steps):
-        _, state = jax.vmap(env.reset, in_axes=(0, None, None))(
-            jax.random.split(jax.random.PRNGKey(100 + t), B), test, env.EnvParams.evaluation())
-        obs = jax.vmap(env.observe, in_axes=(0, None))(state, test)
+        obs = _first_obs(jax.random.PRNGKey(100 + t), test)
         out.append(obs if deadlock is None else obs.replace(deadlock=jnp.asarray(deadlock)))
     return out
 
@@ -73,20 +78,21 @@ def weights(model, cfg, params, impl, carry):
 
 @pytest.mark.parametrize("name", ["baseline", "org"])
 def test_lowrank_fast_weights_equal_dense_copies(setup, test_split, name):
-    """Five consecutive updates of all parameters, every step (different observations
-    and targets), with a reset after three: the same weights, LSTM state and policy as
-    the dense reference (full copies)."""
+    """Consecutive updates of all parameters, every step (different observations and
+    targets), over more than one block of slots, then a reset: the same weights, LSTM
+    state and policy as the dense reference (full copies)."""
     model, params, tpn, tpn_params = setup(name)
+    R = SLOT_BLOCK + 2                  # updates 0..R-1 fill two blocks; reset at step R
     cfg = get_tpn_config(scope="all", when="all", target="random", tpn_lr=0.05,
-                         reset_every=3).test_time()
-    assert make_plan(params, "all", 3).sites, "the LSTM should be low-rank here"
+                         reset_every=R).test_time()
+    assert make_plan(params, "all", R).sites, "the LSTM should be low-rank here"
     pparams = {"base": params, "tpn": tpn_params}
-    obs = observations(test_split, 5)
-    fresh = [[True] * B] + [[False] * B] * 4
+    obs = observations(test_split, R + 2)
+    fresh = [[True] * B] + [[False] * B] * (R + 1)
     runs = {impl: drive(tpn_policy(model, tpn, cfg, "x", 0.0, impl), pparams, test_split, obs,
                         fresh) for impl in ("dense", "lowrank")}
     base = traverse_util.flatten_dict(params)
-    for t in (1, 2, 3, 4):              # 2 and 3 updates, then 1 and 2 after the reset
+    for t in (1, R - 1, R, R + 1):      # 2 and R updates, then 1 and 2 after the reset
         dense = weights(model, cfg, params, "dense", runs["dense"][t])
         low = weights(model, cfg, params, "lowrank", runs["lowrank"][t])
         assert sorted(dense) == sorted(low)
@@ -101,8 +107,9 @@ def test_lowrank_fast_weights_equal_dense_copies(setup, test_split, name):
             np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=2e-6)
     low = runs["lowrank"]
     assert [int(c) for c in low[2].fast.count] == [2] * B     # + the newest, not yet written
-    assert [int(c) for c in low[3].fast.count] == [0] * B     # reset at step 3
-    assert bool(low[3].fast.newest_on.all())
+    assert [int(c) for c in low[R - 1].fast.count] == [R - 1] * B
+    assert [int(c) for c in low[R].fast.count] == [0] * B     # reset at step R
+    assert bool(low[R].fast.newest_on.all())
 
 
 @pytest.mark.parametrize("scope", ["actor", "all"])

@@ -7,9 +7,9 @@ the shared (trained) layer:
 
     x (W + sum_k u_k v_k^T) = x W + sum_k (x . u_k) v_k      u_k = x_k, v_k = -lr g_k
 
-The LSTM is the only place where this pays: its input kernel (49 fuse x 4H) and its
-recurrent kernel (H x 4H) are the bulk of the parameters (6.4 M + 1 M of 7.7 M at the
-paper's widths). Both feed the same gate pre-activations, so one step's gate gradient g
+The LSTM is the only place where this pays: its input kernel (49 fuse channels x 4H)
+and its recurrent kernel (H x 4H) are the bulk of the parameters (6.4 M + 1 M of 7.6 M
+at the paper's widths). Both feed the same gate pre-activations, so one step's gate gradient g
 is the v of both kernels and a slot stores (x_k, h_k, v_k):
 
     gates += ((U_x x + U_h h) * valid) @ V          U_x (K, in), U_h (K, H), V (K, 4H)
@@ -20,18 +20,24 @@ at P positions (the 1x1 layers at 7x7, the per-category encoder layers at 22) wo
 P (in + out) floats per update, so its copy is the cheaper form at our widths (e.g. the
 global 1x1, 512 x 64: 33 k floats as a copy, 1.4 M for 50 updates at 49 positions);
 narrow heads (actor 512 x 6, action 6 x 10) are smaller than one slot. The critic's
-layers do not reach the policy logits (zero gradient) and stay shared. `Plan` records the
-split, `plan_floats` the per-episode size.
+layers (POLICY_FREE) do not reach the policy logits (zero gradient) and stay shared.
+`Plan` records the split, `plan_floats` the per-episode size: at the paper's widths
+70 k floats of copies + 50 slots x 5.7 k = 355 k floats (1.4 MB) per episode, against
+7.6 M floats (30 MB) for a full copy.
 
 The slots are a fixed-size buffer per episode (`slots` = the updates between two resets:
 TPNConfig.reset_every, or the longest episode); `count` says how many are in use, so a
 reset (episode start, or every reset_every steps) only sets count to 0 and copies the
-trained dense leaves back: stale slots are masked, never read.
+trained dense leaves back: stale slots are masked, never read. A step's update is kept
+apart (`newest`) and written into its slot at the start of the next step, so that the
+buffers are written once per step before any read and XLA updates them in place.
 
 The forward pass reuses the flax modules: `nn.intercept_methods` adds the low-rank term
 to LSTMGates.recur (the input kernel's part is computed in LSTMGates.project, where x is
 seen) and, while a step is differentiated, a zero perturbation on the gates whose
-gradient is g, and records x and h. The gradient is truncated to the current step: the
+gradient is g, and records x and h. A step runs the model three times over the batch:
+forward (jax.vjp), backward (the dense copies' gradients and g), and again with the
+updated weights (the action and the LSTM state come from those). The gradient is truncated to the current step: the
 LSTM carry from the previous step is a constant (the authors' release backpropagates
 through the retained graph of its current 50-step chunk instead). The dense reference
 (fast_weights.py) makes the same truncation, and tests check that both give the same
@@ -59,6 +65,7 @@ from orgnav_jax.evaluation import where_rows
 from orgnav_jax.models.trunk import LSTMGates
 from orgnav_jax.tpn.fast_weights import SCOPE_PATHS, policy_ce_grad, tile
 
+SLOT_BLOCK = 10     # slots read per loop iteration: only blocks below the batch's max count
 # modules whose parameters never reach the policy logits (kept shared: zero gradient)
 POLICY_FREE = (("params", "trunk", "critic_hidden"), ("params", "trunk", "critic"))
 
@@ -90,6 +97,11 @@ class Plan:
     slots: int
     dense: tuple[tuple[str, ...], ...]
     sites: tuple[Site, ...]
+
+    @property
+    def buffer_slots(self) -> int:
+        """slots rounded up to whole blocks of SLOT_BLOCK."""
+        return -(-self.slots // SLOT_BLOCK) * SLOT_BLOCK
 
 
 def _prefixed(path, prefixes) -> bool:
@@ -128,7 +140,7 @@ def plan_floats(variables, plan: Plan) -> tuple[int, int]:
     """Floats one episode's fast weights hold: (dense copies, all slots)."""
     flat = traverse_util.flatten_dict(variables)
     return (sum(int(flat[k].size) for k in plan.dense),
-            plan.slots * sum(s.slot_floats for s in plan.sites))
+            plan.buffer_slots * sum(s.slot_floats for s in plan.sites))
 
 
 @struct.dataclass
@@ -153,13 +165,54 @@ def _unbatch(tree):
     return jax.tree_util.tree_map(lambda x: x[0], tree)
 
 
-def _interceptor(plan: Plan, factors, count, newest, perts, seen: dict):
+def _in_blocks(valid):
+    return tuple(valid[i * SLOT_BLOCK:(i + 1) * SLOT_BLOCK]
+                 for i in range(valid.shape[0] // SLOT_BLOCK))
+
+
+def _sum_blocks(term, blocks, n, like):
+    """sum of term(i) over the blocks i < `blocks` (of n); a lax.cond per block, so the
+    blocks past the batch's last used slot are not read."""
+    out = jnp.zeros_like(like)
+    for i in range(n):
+        out = out + jax.lax.cond(i < blocks, lambda i=i: term(i), lambda: jnp.zeros_like(like))
+    return out
+
+
+@jax.custom_vjp
+def lowrank_gates(x, h, ux, uh, v, valid, blocks):
+    """One environment's low-rank gate term sum_i ((ux_i x + uh_i h) * valid_i) @ v_i over
+    the first `blocks` blocks (the later ones are empty in every row of the batch and are
+    not read): x (in,), h (H,); ux, uh, v tuples of blocks (S, in), (S, H), (S, 4H);
+    valid (K,) float; blocks () int32 -> (4H,). Whole arrays per block: XLA's CPU dots
+    read slices of a larger buffer far slower. The gradient reaches x only: h is the
+    carry from the previous step (a constant: the truncated gradient) and the slots are
+    data."""
+    valid = _in_blocks(valid)
+    return _sum_blocks(lambda i: ((ux[i] @ x + uh[i] @ h) * valid[i]) @ v[i], blocks, len(v),
+                       v[0][0])
+
+
+def _lowrank_fwd(x, h, ux, uh, v, valid, blocks):
+    return lowrank_gates(x, h, ux, uh, v, valid, blocks), (ux, v, valid, blocks)
+
+
+def _lowrank_bwd(res, ct):
+    ux, v, valid, blocks = res
+    valid = _in_blocks(valid)
+    dx = _sum_blocks(lambda i: ((v[i] @ ct) * valid[i]) @ ux[i], blocks, len(v), ux[0][0])
+    return dx, None, None, None, None, None, None
+
+
+lowrank_gates.defvjp(_lowrank_fwd, _lowrank_bwd)
+
+
+def _interceptor(plan: Plan, factors, count, blocks, newest, perts, seen: dict):
     """A flax method interceptor adding the sites' low-rank terms (one environment, the
-    model's batch axis of 1): slots < count of `factors`, plus `newest` = (vectors, on)
-    if given. With `perts` it adds those to the gates too and records the layers' inputs
-    in seen[key] = {"x", "h"}."""
+    model's batch axis of 1): slots < count of `factors` (in the first `blocks` blocks),
+    plus `newest` = (vectors, on) if given. With `perts` it adds those to the gates too
+    and records the layers' inputs in seen[key] = {"x", "h"}."""
     sites = {s.module: s for s in plan.sites}
-    valid = (jnp.arange(plan.slots) < count).astype(jnp.float32)
     pending = {}
 
     def intercept(next_fun, args, kwargs, context):
@@ -168,20 +221,19 @@ def _interceptor(plan: Plan, factors, count, newest, perts, seen: dict):
         if site is None or context.method_name not in ("project", "recur"):
             return next_fun(*args, **kwargs)
         f = factors[site.key]
-        if context.method_name == "project":           # x (1, in): the input kernel's part
-            x = args[0]
-            pending[site.key] = (x, jnp.einsum("ai,ki->ak", x, f["x"]))       # (1, K)
+        if context.method_name == "project":           # x (1, in): the input kernel's input
+            pending[site.key] = args[0]
             if perts is not None:
-                seen.setdefault(site.key, {})["x"] = x[0]
+                seen.setdefault(site.key, {})["x"] = args[0][0]
             return next_fun(*args, **kwargs)
         gates, carry = args[:2]                        # recur: gates (1, 4H), carry (c, h)
         h = carry[1]
         if site.key not in pending:
             raise RuntimeError(f"low-rank fast weights: {site.key}.recur without its project "
                                "in the same step")
-        x, ax = pending.pop(site.key)
-        a = (ax + jnp.einsum("ah,kh->ak", h, f["h"])) * valid                  # (1, K)
-        gates = gates + a @ f["v"]
+        x = pending.pop(site.key)
+        valid = (jnp.arange(plan.buffer_slots) < count).astype(gates.dtype)
+        gates = gates + lowrank_gates(x[0], h[0], f["x"], f["h"], f["v"], valid, blocks)
         if newest is not None:
             n, on = newest[0][site.key], newest[1]
             gates = gates + (on * (x @ n["x"] + h @ n["h"]))[:, None] * n["v"]
@@ -198,7 +250,7 @@ class LowRankFastWeights:
 
     def __init__(self, model, plan: Plan):
         self.model, self.plan = model, plan
-        self._v_apply = jax.vmap(self._apply_row, in_axes=(None, 0, 0, 0, 0, 0, 0, 0))
+        self._v_apply = jax.vmap(self._apply_row, in_axes=(None, 0, 0, 0, None, 0, 0, 0, 0))
 
     def __hash__(self):
         return hash((self.model, self.plan))
@@ -215,8 +267,9 @@ class LowRankFastWeights:
     def init(self, batch: int, base) -> LowRankState:
         _, dense = self._split(base)
         z = lambda *shape: jnp.zeros((batch,) + shape)
-        K = self.plan.slots
-        factors = {s.key: {"x": z(K, s.din), "h": z(K, s.hidden), "v": z(K, 4 * s.hidden)}
+        blocks = range(self.plan.buffer_slots // SLOT_BLOCK)
+        factors = {s.key: {n: tuple(z(SLOT_BLOCK, d) for _ in blocks) for n, d in
+                           (("x", s.din), ("h", s.hidden), ("v", 4 * s.hidden))}
                    for s in self.plan.sites}
         newest = {s.key: {"x": z(s.din), "h": z(s.hidden), "v": z(4 * s.hidden)}
                   for s in self.plan.sites}
@@ -226,24 +279,32 @@ class LowRankFastWeights:
     def reset(self, base, state: LowRankState, mask) -> LowRankState:
         """mask (B,) bool: those rows go back to the trained weights."""
         _, dense = self._split(base)
-        return state.replace(dense=where_rows(mask, tile(dense, mask.shape[0]), state.dense),
-                             count=jnp.where(mask, 0, state.count),
+        dense = jax.lax.cond(jnp.any(mask),     # most steps reset no row: skip the copy
+                             lambda d: where_rows(mask, tile(dense, mask.shape[0]), d),
+                             lambda d: d, state.dense)
+        return state.replace(dense=dense, count=jnp.where(mask, 0, state.count),
                              newest_on=state.newest_on & ~mask)
 
     def _commit(self, state: LowRankState) -> LowRankState:
         """Write the newest update into slot `count` of its rows (in place: the buffers
         are not read before this in a step)."""
         rows = jnp.arange(state.count.shape[0])
-        slot = jnp.where(state.newest_on, state.count, self.plan.slots)    # K: dropped
-        factors = jax.tree_util.tree_map(lambda buf, x: buf.at[rows, slot].set(x, mode="drop"),
-                                         state.factors, state.newest)
+        slot = jnp.where(state.newest_on, state.count, self.plan.buffer_slots)   # dropped
+
+        def put(blocks, x):             # rows whose slot is not in block i write nowhere
+            at = [slot - i * SLOT_BLOCK for i in range(len(blocks))]
+            return tuple(buf.at[rows, jnp.where(j >= 0, j, SLOT_BLOCK)].set(x, mode="drop")
+                         for buf, j in zip(blocks, at))
+        factors = {k: {n: put(f[n], state.newest[k][n]) for n in f}
+                   for k, f in state.factors.items()}
         return state.replace(factors=factors, count=state.count + state.newest_on,
                              newest_on=jnp.zeros_like(state.newest_on))
 
-    def _apply_row(self, shared, dense, factors, count, newest, inputs, carry, perts):
+    def _apply_row(self, shared, dense, factors, count, blocks, newest, inputs, carry, perts):
         """One environment (no batch axis) -> (logits (6,), (carry, h (H,), seen))."""
         seen: dict = {}
-        intercept, pending = _interceptor(self.plan, factors, count, newest, perts, seen)
+        intercept, pending = _interceptor(self.plan, factors, count, blocks, newest, perts,
+                                          seen)
         variables = traverse_util.unflatten_dict({**shared, **dense})
         with nn.intercept_methods(intercept):
             logits, _, carry, h = self.model.apply(variables, _one(inputs), _one(carry))
@@ -268,9 +329,11 @@ class LowRankFastWeights:
         B = state.count.shape[0]
         perts = {s.key: jnp.zeros((B, 4 * s.hidden)) for s in self.plan.sites}
 
+        blocks = (jnp.max(state.count) + SLOT_BLOCK - 1) // SLOT_BLOCK   # same for all rows
+
         def forward(dense, perts):
-            return self._v_apply(shared, dense, state.factors, state.count, None, inputs,
-                                 carry, perts)
+            return self._v_apply(shared, dense, state.factors, state.count, blocks, None,
+                                 inputs, carry, perts)
 
         logits, vjp_fn, (lstm, h, seen) = jax.vjp(forward, state.dense, perts, has_aux=True)
         target, update, aux = decide(logits, h)
@@ -281,8 +344,8 @@ class LowRankFastWeights:
                           "v": -lr * g_gates[s.key]} for s in self.plan.sites}
         new = state.replace(dense=dense, newest=newest, newest_on=update)
         logits2, (lstm2, _, _) = self._v_apply(shared, dense, state.factors, state.count,
-                                               (newest, update.astype(jnp.float32)), inputs,
-                                               carry, None)
+                                               blocks, (newest, update.astype(jnp.float32)),
+                                               inputs, carry, None)
         logits, lstm = where_rows(update, (logits2, lstm2), (logits, lstm))
         return logits, lstm, new, aux
 
@@ -293,9 +356,10 @@ class LowRankFastWeights:
         flat = traverse_util.flatten_dict(base)
         B = state.count.shape[0]
         out = dict(state.dense)
-        valid = (jnp.arange(self.plan.slots)[None] < state.count[:, None]).astype(jnp.float32)
+        valid = (jnp.arange(self.plan.buffer_slots)[None] < state.count[:, None]).astype(
+            jnp.float32)
         for s in self.plan.sites:
-            f = state.factors[s.key]
+            f = {n: jnp.concatenate(blocks, axis=1) for n, blocks in state.factors[s.key].items()}
             for name, u in (("input_kernel", f["x"]), ("recurrent_kernel", f["h"])):
                 delta = jnp.einsum("bk,bki,bko->bio", valid, u, f["v"])
                 out[s.kernel(name)] = flat[s.kernel(name)][None] + delta

@@ -5,7 +5,20 @@ scan): the base model runs with the episode's own fast weights; the TPN reads it
 internal memory; on a deadlock step (or every step, when="all") the target is the TPN's
 argmax (or a random action, target="random"), the fast weights take one SGD step of
 CE(policy logits, target), and the agent acts greedily with the updated weights. Fast
-weights are reset to the trained parameters at each episode start.
+weights are reset to the trained parameters at each episode start and before steps
+reset_every, 2 reset_every, ... of it (the release's 50; 0: never within an episode).
+
+The fast weights of `scope` (default "all", the release's: every parameter of the
+navigation network) are low-rank deltas of the LSTM kernels plus dense copies of the
+rest (tpn/lowrank.py); the actor head alone keeps a dense copy and runs the model up to
+the LSTM once, shared (tpn/fast_weights.py, also the reference the low-rank form is
+tested against). The gradient is truncated to the current step (the LSTM carry from the
+previous step is a constant).
+
+tpn_train_mode reproduces the release's confound: its "+TPN" evaluation ran the network
+in train mode, so dropout was active there and not in "w/o TPN". With it, a fresh dropout
+mask (the navigation model's rate) is drawn every step and used for the forward pass,
+the update and the action; without it the evaluation is deterministic.
 
     policy, params, nav_cfg, tpn_cfg = load_tpn_policy("runs/baseline-small/tpn")
     evaluation.evaluate(policy, params, scenes, episodes)
