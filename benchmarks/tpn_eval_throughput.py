@@ -89,8 +89,8 @@ def main() -> None:
     print(f"jax {jax.__version__} backend {jax.default_backend()}", flush=True)
     tiny = load_or_build("tiny", 0).split_view("train")
     rows = []
-    print(f"{'preset':<6} {'policy':<10} {'B':>5} {'compile s':>9} {'env-steps/s':>12} "
-          f"{'vs plain':>8}\n" + "-" * 56, flush=True)
+    print(f"{'preset':<6} {'policy':<16} {'B':>5} {'compile s':>9} {'env-steps/s':>12} "
+          f"{'vs plain':>8}\n" + "-" * 62, flush=True)
     for preset in args.presets:
         scenes = bench_scenes(tiny, preset)
         cfg = get_config(preset, model=args.model)
@@ -116,7 +116,7 @@ def main() -> None:
                                  env_steps_per_s=round(sps, 1), compile_s=round(c, 2),
                                  ratio_to_plain=round(sps / plain, 3)))
             for r in rows[-1 - len(args.variants):]:
-                print(f"{r['preset']:<6} {r['policy']:<10} {r['num_envs']:>5} "
+                print(f"{r['preset']:<6} {r['policy']:<16} {r['num_envs']:>5} "
                       f"{r['compile_s']:>9.2f} {r['env_steps_per_s']:>12.0f} "
                       f"{r['ratio_to_plain']:>8.3f}", flush=True)
     print(json.dumps({"results": rows,

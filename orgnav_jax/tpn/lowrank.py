@@ -30,7 +30,11 @@ TPNConfig.reset_every, or the longest episode); `count` says how many are in use
 reset (episode start, or every reset_every steps) only sets count to 0 and copies the
 trained dense leaves back: stale slots are masked, never read. A step's update is kept
 apart (`newest`) and written into its slot at the start of the next step, so that the
-buffers are written once per step before any read and XLA updates them in place.
+buffers are written once per step before any read and XLA updates them in place. The
+slots are stored in blocks of SLOT_BLOCK, and only the blocks below the batch's largest
+count are read (`lowrank_gates`: one lax.cond per block, a custom_vjp for the backward):
+episodes of an evaluation batch start and reset together, so early in each reset window
+few blocks are in use.
 
 The forward pass reuses the flax modules: `nn.intercept_methods` adds the low-rank term
 to LSTMGates.recur (the input kernel's part is computed in LSTMGates.project, where x is
@@ -146,10 +150,11 @@ def plan_floats(variables, plan: Plan) -> tuple[int, int]:
 @struct.dataclass
 class LowRankState:
     """One batch of episodes' fast weights (leading axis B everywhere): dense {path:
-    (B, ...)}; factors {site key: {"x": (B, K, in), "h": (B, K, H), "v": (B, K, 4H)}}
-    with count (B,) int32 slots in use; newest {site key: {"x", "h", "v"}} (B, ...) the
-    last step's update, written into its slot at the start of the next step when
-    newest_on (B,) (a write-behind: see LowRankFastWeights.step)."""
+    (B, ...)}; factors {site key: {"x", "h", "v"}}, each a tuple of K / SLOT_BLOCK blocks
+    (B, SLOT_BLOCK, in | H | 4H), slot k in block k // SLOT_BLOCK; count (B,) int32 slots
+    in use; newest {site key: {"x", "h", "v"}} (B, ...) the last step's update, written
+    into its slot at the start of the next step when newest_on (B,) (a write-behind: see
+    LowRankFastWeights.step)."""
     dense: Any
     factors: Any
     count: jax.Array

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from orgnav_jax.constants import NUM_ACTIONS
+from orgnav_jax.constants import DONE, NUM_ACTIONS
 from orgnav_jax.env import EnvParams
 from orgnav_jax.evaluation import Policy
 from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
@@ -112,6 +112,9 @@ def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN", dropout: floa
                                               method=tpn.step_logits)
             deadlock, vision = detect(cfg, carry.vision, obs.deadlock, inputs.glob, fresh)
             update = deadlock if cfg.when == "deadlock" else jnp.ones_like(deadlock)
+            # an episode that said Done is over (the evaluation scan keeps stepping its
+            # frozen last observation): no more updates, so fewer slots to read
+            update = update & (obs.prev_action[:, DONE] == 0)
             if cfg.target == "tpn":
                 target = jnp.argmax(tpn_logits, -1)
             else:
