@@ -187,7 +187,8 @@ def test_cli_trains_and_evaluates_with_tpn(base_run, tmp_path, capsys):
     assert load_tpn_config(run_dir).base_dir == base_run
     assert summary["episodes"] == 32 and (run_dir / "best").exists()
     for variant in ([], ["--when", "all"], ["--target", "random"], ["--deadlock", "cosine"],
-                    ["--scope", "trunk", "--tpn-lr", "1e-3"]):
+                    ["--scope", "trunk", "--tpn-lr", "1e-3"],
+                    ["--scope", "actor", "--tpn-train-mode", "true", "--reset-every", "0"]):
         out = tmp_path / f"{'-'.join(variant)}.json"
         res = evaluate.main(["--tpn", str(run_dir), "--split", "test", "--quiet",
                              "--episodes-per-room-type", "5", "--out", str(out)] + variant)

@@ -136,7 +136,8 @@ def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN", dropout: floa
 def load_tpn_policy(run_dir: str | Path, **test_time):
     """-> (Policy, {"base", "tpn"} params, navigation config, TPN config) of a stage-2
     run (its best-on-val TPN and its base's best-on-val model); `test_time` overrides
-    test-time fields (tpn_lr, scope, when, target, deadlock, cosine_threshold)."""
+    test-time fields (config.TEST_TIME_FIELDS: tpn_lr, scope, when, target, deadlock,
+    cosine_threshold, reset_every, tpn_train_mode)."""
     from orgnav_jax.training.checkpoints import RunCheckpoints
     from orgnav_jax.training.policy import load_run_model
     cfg = load_tpn_config(run_dir)
@@ -149,7 +150,8 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
         raise FileNotFoundError(f"{run_dir}: no best-on-val TPN checkpoint yet")
     tpn_params, _ = ckpt.restore(like, best=True)
     name = f"{nav_cfg.model}+TPN" + ("" if cfg.when == "deadlock" else f"-{cfg.when}") + \
-        ("" if cfg.target == "tpn" else f"-{cfg.target}")
+        ("" if cfg.target == "tpn" else f"-{cfg.target}") + \
+        ("-train" if cfg.tpn_train_mode else "")          # dropout on: the release's confound
     return tpn_policy(model, tpn, cfg.test_time(), name,
                       float(getattr(nav_cfg, "dropout", 0.0))), \
         {"base": base_params, "tpn": tpn_params}, nav_cfg, cfg
@@ -160,8 +162,7 @@ def default_batch_size(base_params, cfg: TPNConfig | str, impl: str = "auto",
     """Episodes per evaluation batch (16 to 1000) so that the fast weights, with their
     gradient and update copies, stay within budget_bytes. `cfg`: the TPNConfig, or just a
     scope (then the slots of reset_every=0, the most an episode can need). At the paper's
-    widths, all parameters: 1000 with reset_every 50, 400 with 0; dense copies of the
-    trunk: 16."""
+    widths, all parameters: 1000 with reset_every 50, 400 with 0 (full copies: 44)."""
     if isinstance(cfg, str):
         cfg = TPNConfig(scope=cfg, reset_every=0)
     if impl == "dense" or (impl == "auto" and cfg.scope == "actor"):
