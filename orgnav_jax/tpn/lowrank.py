@@ -41,11 +41,12 @@ to LSTMGates.recur (the input kernel's part is computed in LSTMGates.project, wh
 seen) and, while a step is differentiated, a zero perturbation on the gates whose
 gradient is g, and records x and h. A step runs the model three times over the batch:
 forward (jax.vjp), backward (the dense copies' gradients and g), and again with the
-updated weights (the action and the LSTM state come from those). The gradient is truncated to the current step: the
-LSTM carry from the previous step is a constant (the authors' release backpropagates
-through the retained graph of its current 50-step chunk instead). The dense reference
-(fast_weights.py) makes the same truncation, and tests check that both give the same
-weights and logits.
+updated weights (the action and the LSTM state come from those).
+
+The gradient is truncated to the current step: the LSTM carry from the previous step is
+a constant (the authors' release backpropagates through the retained graph of its
+current 50-step chunk instead). The dense reference (fast_weights.py) makes the same
+truncation, and tests check that both give the same weights and logits.
 
     plan = make_plan(base_variables, "all", slots=50)
     fw = LowRankFastWeights(model, plan)
@@ -57,7 +58,6 @@ weights and logits.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Any
 
 import flax.linen as nn
@@ -374,7 +374,3 @@ class LowRankFastWeights:
                 out[k] = jnp.broadcast_to(v, (B,) + v.shape)
         return out
 
-
-@functools.cache
-def lowrank_fast_weights(model, plan: Plan) -> LowRankFastWeights:
-    return LowRankFastWeights(model, plan)
