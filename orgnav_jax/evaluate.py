@@ -88,8 +88,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=int, default=0, help="seed of stochastic policies")
     ap.add_argument("--out", metavar="FILE", help="results JSON (default runs/eval/...)")
     ap.add_argument("--batch-size", type=int, default=None,
-                    help="episodes per jitted batch (default 1000; less for --scope trunk/all "
-                         "so the per-episode fast weights fit in memory)")
+                    help="episodes per jitted batch (default 1000; with --tpn as many as "
+                         "the per-episode fast weights allow, up to 1000)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     from orgnav_jax.tpn.config import TEST_TIME_FIELDS, add_tpn_arguments
     add_tpn_arguments(ap, TEST_TIME_FIELDS)
@@ -102,8 +102,9 @@ def main(argv: list[str] | None = None) -> dict:
     batch_size = args.batch_size
     from orgnav_jax.tpn.config import tpn_overrides_from_args
     if tpn_overrides_from_args(args) and not args.tpn:
-        sys.exit("error: test-time TPN options (--tpn-lr, --scope, --when, --target, "
-                 "--deadlock, --cosine-threshold) need --tpn TPN_RUN_DIR")
+        from orgnav_jax.tpn.config import TEST_TIME_FIELDS
+        options = ", ".join("--" + f.replace("_", "-") for f in TEST_TIME_FIELDS)
+        sys.exit(f"error: test-time TPN options ({options}) need --tpn TPN_RUN_DIR")
     try:
         if args.tpn:
             from orgnav_jax.tpn.policy import default_batch_size, load_tpn_policy
@@ -112,7 +113,7 @@ def main(argv: list[str] | None = None) -> dict:
             preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
             scene_seed = run_cfg.scene_seed
             name = f"{Path(tpn_cfg.base_dir).name}-{policy.name}"
-            batch_size = batch_size or default_batch_size(policy_params["base"], tpn_cfg.scope)
+            batch_size = batch_size or default_batch_size(policy_params["base"], tpn_cfg)
         elif args.checkpoint:
             from orgnav_jax.training.policy import load_run_policy  # the trainer's checkpoints
             policy, policy_params, run_cfg = load_run_policy(args.checkpoint)
