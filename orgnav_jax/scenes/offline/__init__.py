@@ -1,4 +1,4 @@
-"""The authors' offline AI2-THOR data format (see /work/shared/REFERENCE_NOTES.md):
+"""The authors' offline AI2-THOR data format (see docs/offline.md):
 import FloorPlanN folders into a SceneSet, export any SceneSet to them, and read/write
 evaluation episodes in their JSON/pickle form.
 

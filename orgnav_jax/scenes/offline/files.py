@@ -1,5 +1,5 @@
 """File names of one scene folder in the authors' offline format (see
-/work/shared/REFERENCE_NOTES.md): `<dir>/FloorPlanN/<file>`."""
+docs/offline.md): `<dir>/FloorPlanN/<file>`."""
 
 from __future__ import annotations
 
