@@ -2,10 +2,12 @@
 best val success (the test split is never touched).
 
     python experiments/val_sweep.py --name dropout --variants \\
-        baseline-d0=baseline baseline-d25=baseline:dropout=0.25 --seeds 0 \\
-        --total-env-steps 5000000
-    python experiments/val_sweep.py --name il --variants il-cause-w1=il \\
-        il-state-w1=il:il_step=state il-cause-w3=il:il_weight=3 --total-env-steps 5000000
+        baseline-d0=baseline:dropout=0 baseline-d25=baseline:dropout=0.25 --seeds 0 \\
+        --total-env-steps 2048000
+    python experiments/val_sweep.py --name il --variants il-cause-w1=il:il_step=cause \\
+        il-state-w1=il:il_step=state il-cause-w3=il:il_step=cause,il_weight=3
+
+(docs/results.md has the sweeps behind the tables.)
 
 A variant is NAME=ROW[:FIELD=VALUE,...] (ROW a training preset, the fields TrainConfig
 overrides). Each (variant, seed) trains in OUT/runs/NAME-s<seed> (resumed when it has
