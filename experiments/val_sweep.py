@@ -57,7 +57,7 @@ def best_val(run_dir: Path, up_to: int) -> dict:
 
 
 def write_summary(out: Path, name: str, results: dict) -> str:
-    lines = [f"| variant | seeds | best val success | best val SPL | at env steps |",
+    lines = ["| variant | seeds | best val success | best val SPL | at env steps |",
              "|---|---|---|---|---|"]
     for variant, by_seed in results.items():
         s = 100 * np.array([r["success"] for r in by_seed.values()])

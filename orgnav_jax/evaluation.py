@@ -93,7 +93,7 @@ def _run_batch(policy: Policy, policy_params, scenes: SceneSet, scene, start, ta
         action, pcarry = policy.act(policy_params, pcarry, obs, key, scenes, fresh)
         obs2, state2, _, done, info = v_step(state, action, scenes, params)
         said_done = state2.prev_action == DONE     # the action as the env applied it
-        moved_back = ~said_done & state2.revisited & ~info["failed"]
+        moved_back = info["revisited"] & ~info["failed"]   # env: non-Done, visited before
         c = {"success": c["success"] | (running & info["success"]),
              "wrong_done": c["wrong_done"] | (running & said_done & ~info["success"]),
              "timeout": c["timeout"] | (running & done & ~said_done),

@@ -67,7 +67,7 @@ from flax import struct, traverse_util
 
 from orgnav_jax.evaluation import where_rows
 from orgnav_jax.models.trunk import LSTMGates
-from orgnav_jax.tpn.fast_weights import SCOPE_PATHS, policy_ce_grad, tile
+from orgnav_jax.tpn.fast_weights import SCOPE_PATHS, _one, _unbatch, policy_ce_grad, tile
 
 SLOT_BLOCK = 10     # slots read per loop iteration: only blocks below the batch's max count
 # modules whose parameters never reach the policy logits (kept shared: zero gradient)
@@ -160,14 +160,6 @@ class LowRankState:
     count: jax.Array
     newest: Any
     newest_on: jax.Array
-
-
-def _one(tree):
-    return jax.tree_util.tree_map(lambda x: x[None], tree)
-
-
-def _unbatch(tree):
-    return jax.tree_util.tree_map(lambda x: x[0], tree)
 
 
 def _in_blocks(valid):

@@ -42,7 +42,7 @@ from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
 from orgnav_jax.models.tpn import TPN, memory_init, memory_record, memory_reset
 from orgnav_jax.tpn.config import TPNConfig, get_tpn_config, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
-from orgnav_jax.tpn.fast_weights import DenseFastWeights, scope_size, tile  # noqa: F401
+from orgnav_jax.tpn.fast_weights import DenseFastWeights, scope_size
 from orgnav_jax.tpn.lowrank import LowRankFastWeights, make_plan, plan_floats
 
 
