@@ -22,6 +22,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from orgnav_jax import env, evaluation
+from orgnav_jax.errors import UserError, run_cli
 from orgnav_jax.episodes import (
     EPISODES_PER_ROOM_TYPE,
     load_episodes,
@@ -104,27 +105,24 @@ def main(argv: list[str] | None = None) -> dict:
     if tpn_overrides_from_args(args) and not args.tpn:
         from orgnav_jax.tpn.config import TEST_TIME_FIELDS
         options = ", ".join("--" + f.replace("_", "-") for f in TEST_TIME_FIELDS)
-        sys.exit(f"error: test-time TPN options ({options}) need --tpn TPN_RUN_DIR")
-    try:
-        if args.tpn:
-            from orgnav_jax.tpn.policy import default_batch_size, load_tpn_policy
-            policy, policy_params, run_cfg, tpn_cfg = load_tpn_policy(
-                args.tpn, **tpn_overrides_from_args(args))
-            preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
-            scene_seed = run_cfg.scene_seed
-            name = f"{Path(tpn_cfg.base_dir).name}-{policy.name}"
-            batch_size = batch_size or default_batch_size(policy_params["base"], tpn_cfg)
-        elif args.checkpoint:
-            from orgnav_jax.training.policy import load_run_policy  # the trainer's checkpoints
-            policy, policy_params, run_cfg = load_run_policy(args.checkpoint)
-            preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
-            scene_seed = run_cfg.scene_seed
-            name = Path(args.checkpoint).name
-        else:
-            policy, policy_params = POLICIES[args.policy or "random"](), None
-            name = args.policy or "random"
-    except (ValueError, FileNotFoundError) as err:   # bad run directory or option
-        sys.exit(f"error: {err}")
+        raise UserError(f"test-time TPN options ({options}) need --tpn TPN_RUN_DIR")
+    if args.tpn:
+        from orgnav_jax.tpn.policy import default_batch_size, load_tpn_policy
+        policy, policy_params, run_cfg, tpn_cfg = load_tpn_policy(
+            args.tpn, **tpn_overrides_from_args(args))
+        preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
+        scene_seed = run_cfg.scene_seed
+        name = f"{Path(tpn_cfg.base_dir).name}-{policy.name}"
+        batch_size = batch_size or default_batch_size(policy_params["base"], tpn_cfg)
+    elif args.checkpoint:
+        from orgnav_jax.training.policy import load_run_policy  # the trainer's checkpoints
+        policy, policy_params, run_cfg = load_run_policy(args.checkpoint)
+        preset, scenes_dir = run_cfg.scene_preset, args.scenes or run_cfg.scenes_dir
+        scene_seed = run_cfg.scene_seed
+        name = Path(args.checkpoint).name
+    else:
+        policy, policy_params = POLICIES[args.policy or "random"](), None
+        name = args.policy or "random"
     scenes = split_scenes(preset, scenes_dir, args.split, scene_seed)
     tag = Path(scenes_dir).name if scenes_dir else preset
     out = Path(args.out or f"runs/eval/{name}-{tag}-{args.split}.json")
@@ -143,4 +141,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

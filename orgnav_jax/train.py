@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 
 from orgnav_jax import evaluate
+from orgnav_jax.errors import UserError, run_cli
 from orgnav_jax.training.config import (
     PRESETS, add_config_arguments, get_config, load_config, overrides_from_args)
 
@@ -73,16 +74,13 @@ def main_tpn(argv: list[str]) -> dict:
     from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config, tpn_overrides_from_args
     args = tpn_parser().parse_args(argv)
     fields = tpn_overrides_from_args(args)
-    try:
-        if args.resume and "run_dir" in fields and not (set(fields) - {"run_dir"}):
-            cfg = load_tpn_config(fields["run_dir"])
-        else:
-            if not fields.get("base_dir"):
-                raise ValueError("--stage tpn needs --base RUN_DIR (a finished training run)")
-            load_config(fields["base_dir"])      # a training run (clear errors otherwise)
-            cfg = get_tpn_config(**fields)
-    except (ValueError, FileNotFoundError) as err:
-        sys.exit(f"error: {err}")
+    if args.resume and "run_dir" in fields and not (set(fields) - {"run_dir"}):
+        cfg = load_tpn_config(fields["run_dir"])
+    else:
+        if not fields.get("base_dir"):
+            raise UserError("--stage tpn needs --base RUN_DIR (a finished training run)")
+        load_config(fields["base_dir"])      # a training run (clear errors otherwise)
+        cfg = get_tpn_config(**fields)
     from orgnav_jax.tpn.stage2 import train_tpn
     print(f"TPN run {cfg.run_dir}: base {cfg.base_dir}, {cfg.num_envs} episodes x "
           f"{cfg.max_steps} steps per update, {cfg.total_episodes:,} episodes, deadlock "
@@ -124,20 +122,17 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser().parse_args(argv)
     overrides = overrides_from_args(args)
     pipeline = TPN_PIPELINES.get(args.preset)
-    try:
-        if (args.tpn_lr or args.tpn_episodes) and not pipeline:
-            raise ValueError(f"--tpn-lr and --tpn-episodes go with the presets "
-                             f"{sorted(TPN_PIPELINES)}")
-        if args.resume and "run_dir" in overrides and not (
-                set(overrides) - {"run_dir", "total_env_steps"}):
-            # resume with the saved config (its budget may be extended)
-            cfg = dataclasses.replace(load_config(overrides["run_dir"]), **overrides)
-        else:
-            if pipeline:
-                overrides.setdefault("run_dir", f"runs/{args.preset}-small")
-            cfg = get_config(pipeline[0] if pipeline else args.preset, **overrides)
-    except (ValueError, FileNotFoundError) as err:
-        sys.exit(f"error: {err}")
+    if (args.tpn_lr or args.tpn_episodes) and not pipeline:
+        raise UserError(f"--tpn-lr and --tpn-episodes go with the presets "
+                        f"{sorted(TPN_PIPELINES)}")
+    if args.resume and "run_dir" in overrides and not (
+            set(overrides) - {"run_dir", "total_env_steps"}):
+        # resume with the saved config (its budget may be extended)
+        cfg = dataclasses.replace(load_config(overrides["run_dir"]), **overrides)
+    else:
+        if pipeline:
+            overrides.setdefault("run_dir", f"runs/{args.preset}-small")
+        cfg = get_config(pipeline[0] if pipeline else args.preset, **overrides)
     from orgnav_jax.training.loop import train     # imports JAX; after argument checks
     print(f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {cfg.num_envs} envs x "
           f"{cfg.rollout_len} steps, {cfg.total_env_steps:,} env steps", flush=True)
@@ -152,4 +147,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

@@ -64,3 +64,21 @@ def _make_room(shape: tuple[int, int] = (9, 9), *, walls=(), furniture=None,
 def make_room():
     """Factory for hand-made rooms (see _make_room)."""
     return _make_room
+
+
+@pytest.fixture
+def cli_error(capsys):
+    """cli_error(main, argv) -> the `error: ...` line a CLI prints for a user error
+    (asserts exit code 2, no traceback, and that the message is the last stderr line)."""
+    from orgnav_jax.errors import run_cli
+
+    def call(main, argv) -> str:
+        capsys.readouterr()
+        rc = run_cli(main, [str(a) for a in argv])
+        err = capsys.readouterr().err
+        assert rc == 2, f"exit code {rc}, stderr: {err[-2000:]}"
+        assert "Traceback" not in err, err
+        lines = [line for line in err.splitlines() if line.strip()]
+        assert lines and lines[-1].startswith("error: "), err[-2000:]
+        return lines[-1]
+    return call

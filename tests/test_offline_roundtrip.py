@@ -137,10 +137,9 @@ def test_cli_import_saves_a_set_that_loads(exported, imported, tmp_path, capsys)
     assert loaded.global_basis is None and loaded.meta("preset") == "offline"
 
 
-def test_cli_errors_are_reported_not_raised(tmp_path, capsys):
-    assert main(["import", "--offline-dir", str(tmp_path / "nope"), "--out",
-                 str(tmp_path / "o")]) == 2
-    assert "offline data directory does not exist" in capsys.readouterr().err
+def test_cli_errors_are_reported_not_raised(tmp_path, cli_error):
+    assert "offline data directory does not exist" in cli_error(
+        main, ["import", "--offline-dir", tmp_path / "nope", "--out", tmp_path / "o"])
 
 
 def test_float16_hdf5_imports_identically(original, imported, tmp_path):

@@ -14,6 +14,7 @@ import json
 import sys
 import time
 
+from orgnav_jax.errors import run_cli
 from orgnav_jax.scenes.builder import build
 from orgnav_jax.scenes.layout import generate_room, render_ascii
 from orgnav_jax.scenes.offline import cli as offline_cli
@@ -40,28 +41,24 @@ def main(argv: list[str] | None = None) -> int:
     offline_cli.add_parsers(sub)
     args = parser.parse_args(argv)
 
-    try:
-        if args.command in offline_cli.COMMANDS:
-            return offline_cli.run(args)
-        if args.command == "build":
-            if args.preset not in PRESETS:
-                parser.error(f"unknown preset {args.preset!r}: expected one of {sorted(PRESETS)}")
-            t0 = time.perf_counter()
-            scenes = build(args.preset, args.seed, progress=True)
-            build_s = time.perf_counter() - t0
-            save(scenes, args.out)
-            summary = summarize(scenes)
-            summary.update(build_s=build_s, disk_mb=disk_size(args.out) / 2**20, out=args.out)
-        elif args.command == "info":
-            summary = summarize(load(args.path, mmap=True))
-            summary.update(disk_mb=disk_size(args.path) / 2**20)
-        else:
-            print(render_ascii(generate_room(args.seed, args.floorplan)))
-            print("# wall, = furniture, o blocking object, . reachable, * object, D door")
-            return 0
-    except (ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    if args.command in offline_cli.COMMANDS:
+        return offline_cli.run(args)
+    if args.command == "build":
+        if args.preset not in PRESETS:
+            parser.error(f"unknown preset {args.preset!r}: expected one of {sorted(PRESETS)}")
+        t0 = time.perf_counter()
+        scenes = build(args.preset, args.seed, progress=True)
+        build_s = time.perf_counter() - t0
+        save(scenes, args.out)
+        summary = summarize(scenes)
+        summary.update(build_s=build_s, disk_mb=disk_size(args.out) / 2**20, out=args.out)
+    elif args.command == "info":
+        summary = summarize(load(args.path, mmap=True))
+        summary.update(disk_mb=disk_size(args.path) / 2**20)
+    else:
+        print(render_ascii(generate_room(args.seed, args.floorplan)))
+        print("# wall, = furniture, o blocking object, . reachable, * object, D door")
+        return 0
     print(format_summary(summary))
     if args.json:
         print(json.dumps(summary))
@@ -69,4 +66,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -1,0 +1,56 @@
+"""Writing outputs without losing anything the program did not write.
+
+    check_output_dir(path, is_scene_set, "a SceneSet")   # before writing into `path`
+    check_output_file(path, is_results_json, "an evaluation results JSON")
+    write_text_atomic(path, text)                          # readers never see half a file
+
+Every `--out` / `--run-dir` writer calls one of the checks first: an existing directory
+(file) that is not empty and not of the writer's own kind is refused with an error that
+names it; nothing is deleted or overwritten.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+
+def check_output_dir(path: str | os.PathLike, is_own: Callable[[Path], bool], kind: str,
+                     option: str = "--out") -> None:
+    """Raise FileExistsError unless `path` is absent, an empty directory, or `kind`
+    (is_own(path) is True)."""
+    path = Path(path)
+    if not path.exists():
+        return
+    if not path.is_dir():
+        raise FileExistsError(f"{option} {path} is a file, expected a directory for {kind}; "
+                              "nothing was written")
+    if any(path.iterdir()) and not is_own(path):
+        raise FileExistsError(f"{option} {path} is a non-empty directory that is not {kind}; "
+                              "it is left untouched: choose another path")
+
+
+def check_output_file(path: str | os.PathLike, is_own: Callable[[Path], bool], kind: str,
+                      option: str = "--out") -> None:
+    """Raise FileExistsError if `path` exists and is not `kind` (is_own(path) is False)."""
+    path = Path(path)
+    if path.is_dir():
+        raise FileExistsError(f"{option} {path} is a directory, expected a file path for "
+                              f"{kind}")
+    if path.exists() and not is_own(path):
+        raise FileExistsError(f"{option} {path} exists and is not {kind}; it is left "
+                              "untouched: choose another path")
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """Write `text` to a temporary file beside `path`, then rename it over `path`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
