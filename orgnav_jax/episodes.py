@@ -168,10 +168,23 @@ def load_episodes(path: str | os.PathLike, scenes: SceneSet) -> EpisodeSet:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"episode file {path} does not exist")
+    if path.is_dir():
+        raise IsADirectoryError(f"episode file {path} is a directory, expected a JSON file")
+    data = path.read_bytes()
+    expected = (f"expected a JSON episode file (format {FORMAT}, written by "
+                "orgnav_jax.evaluate) or a JSON list of episodes")
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        kind = "a Python pickle" if data[:1] == b"\x80" else "binary data"
+        raise ValueError(f"episode file {path} is {kind}, not JSON text; {expected} (the "
+                         "authors' pickles load safely with orgnav_jax.scenes.offline."
+                         "load_offline_episodes)") from None
     except json.JSONDecodeError as err:
         raise ValueError(f"episode file {path} is not valid JSON: {err}") from None
+    except RecursionError:
+        raise ValueError(f"episode file {path}: JSON nested too deeply to read; "
+                         f"{expected}") from None
     if isinstance(doc, list):
         doc = {"episodes": doc}
     if not isinstance(doc, dict) or not isinstance(doc.get("episodes"), list):

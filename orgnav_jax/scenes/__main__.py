@@ -15,11 +15,12 @@ import sys
 import time
 
 from orgnav_jax.errors import run_cli
+from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.builder import build
 from orgnav_jax.scenes.layout import generate_room, render_ascii
 from orgnav_jax.scenes.offline import cli as offline_cli
 from orgnav_jax.scenes.presets import PRESETS
-from orgnav_jax.scenes.storage import disk_size, load, save
+from orgnav_jax.scenes.storage import disk_size, is_scene_set, load, save
 from orgnav_jax.scenes.summary import format_summary, summarize
 
 
@@ -30,7 +31,8 @@ def main(argv: list[str] | None = None) -> int:
     b = sub.add_parser("build", help="generate a benchmark and save it")
     b.add_argument("--preset", default="small", help=f"one of {sorted(PRESETS)}")
     b.add_argument("--seed", type=int, default=0)
-    b.add_argument("--out", required=True, help="output directory (replaced atomically)")
+    b.add_argument("--out", required=True, help="output directory (an existing SceneSet is "
+                   "replaced atomically; any other non-empty directory is refused)")
     b.add_argument("--json", action="store_true", help="also print the summary as JSON")
     i = sub.add_parser("info", help="summarize a saved benchmark")
     i.add_argument("path")
@@ -46,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "build":
         if args.preset not in PRESETS:
             parser.error(f"unknown preset {args.preset!r}: expected one of {sorted(PRESETS)}")
+        check_output_dir(args.out, is_scene_set, "a SceneSet")  # before the build
         t0 = time.perf_counter()
         scenes = build(args.preset, args.seed, progress=True)
         build_s = time.perf_counter() - t0

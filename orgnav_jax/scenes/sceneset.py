@@ -19,7 +19,9 @@ import jax
 import numpy as np
 from flax import struct
 
-from orgnav_jax.constants import NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES, SPLITS, split_index
+from orgnav_jax.constants import (
+    ACTIONS, CATEGORIES, DONE, NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES, SPLITS, split_index,
+)
 
 UNREACHABLE = 32767   # dist sentinel (int16 max): no state where the category is visible can be reached
 NO_ACTION = -1        # expert_action sentinel for unreachable targets and padding states
@@ -116,7 +118,9 @@ class SceneSet:
         return jax.tree_util.tree_map(jax.numpy.asarray, self)
 
     def validate(self, source: str = "SceneSet") -> None:
-        """Check shapes and value ranges; raise ValueError naming the field."""
+        """Check shapes, dtypes and every value the environment relies on; raise a
+        one-line ValueError naming the field, the scene (index and FloorPlan name), the
+        state and the category of the first bad value. See validate_values."""
         N, S = self.state_valid.shape if self.state_valid.ndim == 2 else (None, None)
         if N is None:
             raise ValueError(f"{source}: field 'state_valid' must be (N, S), "
@@ -139,14 +143,248 @@ class SceneSet:
         if tuple(self.global_feat.shape[:4]) != (N, S, 7, 7):
             raise ValueError(f"{source}: field 'global_feat' has shape {self.global_feat.shape},"
                              f" expected ({N}, {S}, 7, 7, G)")
-        counts = np.asarray(self.state_count)
-        valid = np.asarray(self.state_valid)
-        if not (valid == (np.arange(S)[None] < counts[:, None])).all():
-            raise ValueError(f"{source}: field 'state_valid' must be True exactly on the first "
-                             "state_count[n] states of each scene")
-        nxt = np.asarray(self.next_state)
-        if nxt.size and (nxt.min() < 0 or nxt.max() >= S):
-            raise ValueError(f"{source}: field 'next_state' holds indices outside [0, {S})")
-        if np.asarray(self.split).size and not np.isin(np.asarray(self.split),
-                                                        range(len(SPLITS))).all():
-            raise ValueError(f"{source}: field 'split' must hold 0 (train), 1 (val), 2 (test)")
+        if (self.appearance_basis is None) != (self.appearance_proto is None):
+            raise ValueError(f"{source}: fields 'appearance_basis' and 'appearance_proto' "
+                             "must both be present (synthetic codes) or both absent")
+        d = None if self.appearance_basis is None else self.appearance_basis.shape[-1]
+        bases = {"global_basis": (self.global_feat.shape[-1], "G"),   # (rows, columns)
+                 "appearance_basis": (self.appearance.shape[-1], "d"),
+                 "appearance_proto": (C, d)}
+        for name, (rows, cols) in bases.items():
+            value = getattr(self, name)
+            if value is not None and (value.ndim != 2 or value.shape[0] != rows
+                                      or isinstance(cols, int) and value.shape[1] != cols):
+                raise ValueError(f"{source}: field {name!r} has shape {tuple(value.shape)}, "
+                                 f"expected ({rows}, {cols})")
+        validate_values(self, source)
+
+
+# ---------------------------------------------------------------------- validation
+_KINDS = {"b": "bool", "iu": "an integer type", "f": "a float type"}
+_FIELD_KINDS = {
+    "b": ("state_valid", "visible", "present", "targets"),
+    "iu": ("next_state", "state_count", "dist", "expert_action", "room_type", "scene_id",
+           "split"),
+    "f": ("pose", "det_box", "det_conf", "appearance", "global_feat", "appearance_proto",
+          "appearance_basis", "global_basis"),
+}
+_CATEGORY_AXIS_FIELDS = ("visible", "dist", "expert_action", "det_box", "det_conf",
+                         "appearance")
+# IEEE exponent bits: a value is NaN or Inf exactly when all of them are set. Testing the
+# bits of an unsigned view is ~10x faster than np.isfinite on float16.
+_EXPONENT = {np.dtype(np.float16): (np.uint16, 0x7C00),
+             np.dtype(np.float32): (np.uint32, 0x7F800000),
+             np.dtype(np.float64): (np.uint64, 0x7FF0000000000000)}
+FINITE_CHUNK = 1 << 22  # elements checked at a time (8 MB of float16): memory-mapped
+                        # arrays are streamed, never copied whole
+
+
+def _nonfinite(block: np.ndarray) -> np.ndarray:
+    """Bool mask of the NaN/Inf entries of a contiguous 1-D float block."""
+    spec = _EXPONENT.get(block.dtype)
+    if spec is None:
+        return ~np.isfinite(block)
+    utype, mask = spec
+    return (block.view(utype) & utype(mask)) == utype(mask)
+
+
+def first_nonfinite(arr) -> tuple[tuple[int, ...], float] | None:
+    """(index, value) of the first NaN/Inf of a float array, or None; reads the array
+    in chunks of FINITE_CHUNK elements (a memory map is streamed, not loaded)."""
+    arr = np.asarray(arr)
+    if arr.size == 0:
+        return None
+    flat = arr.reshape(-1)  # a view for C-contiguous arrays (np.load, memory maps)
+    for lo in range(0, flat.size, FINITE_CHUNK):
+        block = np.ascontiguousarray(flat[lo:lo + FINITE_CHUNK])
+        bad = _nonfinite(block)
+        if bad.any():
+            j = int(np.argmax(bad))
+            return tuple(int(i) for i in np.unravel_index(lo + j, arr.shape)), float(block[j])
+    return None
+
+
+def _scene(names: list[str], n: int) -> str:
+    return f"scene {n} ({names[n]})" if 0 <= n < len(names) else f"scene {n}"
+
+
+def _where(names: list[str], field: str, index: tuple[int, ...]) -> str:
+    """'scene 3 (FloorPlan4) state 17 category Bowl' for an index into `field`."""
+    if field == "appearance_proto":
+        return f"row {index[0]} ({CATEGORIES[index[0]]})"
+    if field in ("appearance_basis", "global_basis"):
+        return f"index {index}"
+    text = _scene(names, index[0])
+    if len(index) > 1:
+        text += f" state {index[1]}"
+    if field in _CATEGORY_AXIS_FIELDS and len(index) > 2:
+        text += f" category {CATEGORIES[index[2]]}"
+    return text
+
+
+def _first(mask: np.ndarray) -> tuple[int, ...] | None:
+    if not mask.any():
+        return None
+    return tuple(int(i) for i in np.unravel_index(int(np.argmax(mask)), mask.shape))
+
+
+def _action_name(a: int) -> str:
+    return ACTIONS[a] if 0 <= a < NUM_ACTIONS else str(a)
+
+
+def validate_values(scenes: SceneSet, source: str = "SceneSet") -> None:
+    """The value checks of SceneSet.validate (shapes already checked):
+
+    - dtypes: bool masks, integer indices, float features;
+    - state_count in 1..S and state_valid True exactly on the first state_count states;
+      room_type, split in range; next_state in [0, S), valid states lead to valid states,
+      padding states to themselves;
+    - every float field finite (pose, det_box, det_conf, appearance, global_feat and the
+      bases if present), streamed in chunks;
+    - dist in 0..UNREACHABLE, expert_action in NO_ACTION..DONE, and on valid states the
+      expert tables of scenes/expert.py: dist 0 exactly where the category is visible;
+      Done exactly where dist is 0; NO_ACTION exactly where dist is UNREACHABLE;
+      elsewhere expert_action is a move (0..4, rotations and looks cost 1 like
+      MoveAhead) whose successor has dist exactly one less; no move reaches a state more
+      than one closer (dist is the shortest path, not just a path). Padding states are
+      unreachable (UNREACHABLE, NO_ACTION) and never visible;
+    - targets only where the category is present and some valid state has a finite dist.
+    """
+    N, S = scenes.state_valid.shape
+    fields = {f.name: getattr(scenes, f.name) for f in dataclasses.fields(scenes)
+              if f.name != "info"}
+    for kinds, names in _FIELD_KINDS.items():
+        for name in names:
+            value = fields[name]
+            if value is not None and np.dtype(value.dtype).kind not in kinds:
+                raise ValueError(f"{source}: field {name!r} has dtype {value.dtype}, expected "
+                                 f"{_KINDS[kinds]}")
+    counts = np.asarray(scenes.state_count).astype(np.int64)
+    if counts.size and (counts.min() < 1 or counts.max() > S):
+        n = int(np.argmax((counts < 1) | (counts > S)))
+        raise ValueError(f"{source}: field 'state_count' is {counts[n]} for scene {n}, "
+                         f"expected 1..{S} (the padded number of states)")
+    scene_id = np.asarray(scenes.scene_id)
+    names = [f"FloorPlan{int(i)}" for i in scene_id]
+    valid = np.asarray(scenes.state_valid)
+    if not (valid == (np.arange(S)[None] < counts[:, None])).all():
+        n = int(np.argmax((valid != (np.arange(S)[None] < counts[:, None])).any(1)))
+        raise ValueError(f"{source}: field 'state_valid' must be True exactly on the first "
+                         f"state_count[n] states of each scene; it is not for "
+                         f"{_scene(names, n)}")
+    for name, limit, what in (("room_type", len(ROOM_TYPES), f"an index into {ROOM_TYPES}"),
+                              ("split", len(SPLITS), "0 (train), 1 (val), 2 (test)")):
+        arr = np.asarray(fields[name])
+        bad = (arr < 0) | (arr >= limit)
+        if bad.any():
+            n = int(np.argmax(bad))
+            raise ValueError(f"{source}: field {name!r} is {arr[n]} for {_scene(names, n)}, "
+                             f"expected {what}")
+    nxt = np.asarray(scenes.next_state)
+    if nxt.size and (nxt.min() < 0 or nxt.max() >= S):
+        n, s, a = _first((nxt < 0) | (nxt >= S))
+        raise ValueError(f"{source}: field 'next_state' holds indices outside [0, {S}): "
+                         f"{nxt[n, s, a]} at {_scene(names, n)} state {s} action "
+                         f"{_action_name(a)}")
+
+    for name in _FIELD_KINDS["f"]:
+        if fields[name] is None:
+            continue
+        hit = first_nonfinite(fields[name])
+        if hit is not None:
+            index, value = hit
+            value = "NaN" if np.isnan(value) else ("Inf" if value > 0 else "-Inf")
+            raise ValueError(f"{source}: field {name!r} holds {value} at "
+                             f"{_where(names, name, index)}; expected finite values "
+                             "(the data is corrupt: rebuild or re-import it)")
+
+    dist_all, act_all, vis_all = scenes.dist, scenes.expert_action, scenes.visible
+    targets, present = np.asarray(scenes.targets), np.asarray(scenes.present)
+    C = NUM_CATEGORIES
+    for n in range(N):
+        k = int(counts[n])
+        d = np.asarray(dist_all[n]).astype(np.int32)          # (S, C)
+        a = np.asarray(act_all[n]).astype(np.int32)     # (S, C)
+        vis = np.asarray(vis_all[n])
+        step = nxt[n]                                          # (S, A)
+
+        def where(s, c=None, n=n):
+            return (f"{_scene(names, n)} state {s}"
+                    + (f" target {CATEGORIES[c]}" if c is not None else ""))
+        hit = _first((d < 0) | (d > UNREACHABLE))
+        if hit:
+            s, c = hit
+            raise ValueError(f"{source}: field 'dist' holds {d[s, c]} at {where(s, c)}; "
+                             f"expected 0..{UNREACHABLE - 1} (actions to a state where the "
+                             f"target is visible) or {UNREACHABLE} (UNREACHABLE)")
+        hit = _first((a < NO_ACTION) | (a > DONE))
+        if hit:
+            s, c = hit
+            raise ValueError(f"{source}: field 'expert_action' holds {a[s, c]} at "
+                             f"{where(s, c)}; expected {NO_ACTION} (NO_ACTION: no path), "
+                             f"0..{DONE - 1} (the first move of a shortest path) or {DONE} "
+                             "(Done, where the target is visible)")
+        # padding states: self-loops, never visible, unreachable
+        hit = _first(step[k:] != np.arange(k, S)[:, None])
+        if hit:
+            s, m = hit
+            raise ValueError(f"{source}: field 'next_state' of padding {where(k + s)} "
+                             f"(state_count {k}) leads to {step[k + s, m]} by "
+                             f"{_action_name(m)}; padding states must stay put")
+        for name, arr, ok in (("visible", vis, False), ("dist", d, UNREACHABLE),
+                              ("expert_action", a, NO_ACTION)):
+            hit = _first(arr[k:] != ok)
+            if hit:
+                s, c = hit
+                raise ValueError(f"{source}: field {name!r} is {arr[k + s, c]} at padding "
+                                 f"{where(k + s, c)} (state_count {k}); expected {ok}")
+        d, a, vis, step = d[:k], a[:k], vis[:k], step[:k]
+        hit = _first(step >= k)
+        if hit:
+            s, m = hit
+            raise ValueError(f"{source}: field 'next_state' leads from valid {where(s)} by "
+                             f"{_action_name(m)} to padding state {step[s, m]} (the scene "
+                             f"has {k} states)")
+        hit = _first((d == 0) != vis)
+        if hit:
+            s, c = hit
+            raise ValueError(f"{source}: field 'dist' is {d[s, c]} at {where(s, c)}, where "
+                             f"the target is {'' if vis[s, c] else 'not '}visible; expected "
+                             "dist 0 exactly where the target is visible")
+        for cond, text in (((a == DONE) != (d == 0), "Done exactly where dist is 0"),
+                           ((a == NO_ACTION) != (d == UNREACHABLE),
+                            f"NO_ACTION ({NO_ACTION}) exactly where dist is UNREACHABLE")):
+            hit = _first(cond)
+            if hit:
+                s, c = hit
+                raise ValueError(f"{source}: fields 'expert_action' and 'dist' disagree at "
+                                 f"{where(s, c)}: expert_action {_action_name(a[s, c])}, dist "
+                                 f"{d[s, c]}; expected {text}")
+        moving = (d > 0) & (d < UNREACHABLE)
+        cols = np.arange(C)[None, :]
+        succ = step[np.arange(k)[:, None], np.clip(a, 0, DONE)]     # (k, C)
+        hit = _first(moving & (d[succ, cols] != d - 1))
+        if hit:
+            s, c = hit
+            t = succ[s, c]
+            raise ValueError(
+                f"{source}: fields 'expert_action' and 'dist' disagree at {where(s, c)}: "
+                f"dist {d[s, c]}, expert_action {_action_name(a[s, c])} leads to state {t} "
+                f"at dist {d[t, c]}; expected {d[s, c] - 1} (the expert action must start a "
+                "shortest path)")
+        for m in range(DONE):
+            after = d[step[:, m]]                                   # (k, C)
+            hit = _first(d > after + 1)
+            if hit:
+                s, c = hit
+                raise ValueError(
+                    f"{source}: field 'dist' is {d[s, c]} at {where(s, c)}, but "
+                    f"{_action_name(m)} leads to state {step[s, m]} at dist {after[s, c]}: "
+                    "dist is not the shortest path length")
+        bad = targets[n] & ~(present[n] & (d < UNREACHABLE).any(0))
+        if bad.any():
+            c = int(np.argmax(bad))
+            raise ValueError(f"{source}: field 'targets' marks {CATEGORIES[c]} in "
+                             f"{_scene(names, n)}, which is absent or never visible from a "
+                             "reachable state; expected targets only where present and "
+                             "reachable")

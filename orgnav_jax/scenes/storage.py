@@ -1,8 +1,11 @@
 """Save and load a SceneSet: a directory with `meta.json` and one `.npy` per field.
 
 Saving is atomic (written beside the target, then renamed over it), so an interrupted
-save never leaves a half-written set where a good one was. Loading checks the format
-name, version, every field's presence, shape and dtype, and names what is wrong.
+save never leaves a half-written set where a good one was. Saving replaces only an empty
+directory or a SceneSet (is_scene_set: meta.json and our .npy files, nothing else):
+anything else at the path is refused and left untouched. Loading checks the format
+name, version, every field's presence, shape and dtype, then SceneSet.validate checks
+the values (finite features, index ranges, expert tables), and names what is wrong.
 """
 
 from __future__ import annotations
@@ -12,10 +15,12 @@ import json
 import os
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
 
+from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.builder import FORMAT_NAME, FORMAT_VERSION
 from orgnav_jax.scenes.sceneset import SceneSet
 
@@ -27,9 +32,56 @@ def _array_fields() -> list[str]:
     return [f.name for f in dataclasses.fields(SceneSet) if f.name != "info"]
 
 
-def save(scenes: SceneSet, path: str | os.PathLike) -> Path:
-    """Write `scenes` to directory `path` (replaced atomically). Returns the path."""
+def _own_files() -> set[str]:
+    return {META_FILE} | {f"{name}.npy" for name in _array_fields()}
+
+
+def is_scene_set(path: str | os.PathLike) -> bool:
+    """True if `path` is a SceneSet directory holding nothing but what `save` writes:
+    meta.json naming our format, and only .npy files of SceneSet fields (so a set into
+    which someone put their own files is not one: replacing it would delete them)."""
     path = Path(path)
+    meta_path = path / META_FILE
+    try:
+        if not meta_path.is_file():
+            return False
+        meta = json.loads(meta_path.read_text())
+        own = _own_files()
+        entries = list(path.iterdir())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return (isinstance(meta, dict) and meta.get("format") == FORMAT_NAME
+            and all(p.name in own and p.is_file() and not p.is_symlink() for p in entries))
+
+
+def _remove_own_set(path: Path) -> None:
+    """Delete the files `save` writes in `path`, then the directory if that empties it
+    (anything else found there is left, with a warning)."""
+    own = _own_files()
+    for p in path.iterdir():
+        if p.name in own and (p.is_file() or p.is_symlink()):
+            p.unlink()
+    try:
+        path.rmdir()
+    except OSError:
+        warnings.warn(f"{path}: left in place (it holds files that are not part of a "
+                      "SceneSet)", stacklevel=3)
+
+
+def save(scenes: SceneSet, path: str | os.PathLike, validate: bool = True) -> Path:
+    """Write `scenes` to directory `path`, replacing an existing SceneSet there
+    atomically. Returns the path.
+
+    Refuses (FileExistsError, nothing written) a path that is a file or a non-empty
+    directory that is not a SceneSet (is_scene_set). validate=True first checks the set
+    (SceneSet.validate), so an invalid set is never written.
+    """
+    path = Path(path)
+    if path.is_symlink():
+        path = path.resolve()  # replace the directory it points to; the link stays
+    check_output_dir(path, is_scene_set, "a SceneSet", option="output")
+    if validate:
+        scenes.validate(f"SceneSet to save to {path}")
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     old = None
@@ -47,14 +99,18 @@ def save(scenes: SceneSet, path: str | os.PathLike) -> Path:
                 "info": {k: list(v) if isinstance(v, tuple) else v for k, v in info.items()},
                 "fields": fields}
         (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
+        # checked again: the path may have changed while the arrays were written
+        check_output_dir(path, is_scene_set, "a SceneSet", option="output")
         if path.exists():
             old = path.with_name(f".{path.name}.old")
-            if old.exists():
-                shutil.rmtree(old)
+            k = 0
+            while old.exists() or old.is_symlink():  # never delete what we did not write
+                k += 1
+                old = path.with_name(f".{path.name}.old{k}")
             path.rename(old)
         tmp.rename(path)
         if old is not None:
-            shutil.rmtree(old)
+            _remove_own_set(old)
     except BaseException:
         if old is not None and old.exists() and not path.exists():
             old.rename(path)  # interrupted between the two renames: put the old set back
@@ -86,6 +142,8 @@ def load(path: str | os.PathLike, mmap: bool = False) -> SceneSet:
         meta = json.loads(meta_path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{meta_path} is not valid JSON ({e}): not a SceneSet") from None
+    except RecursionError:
+        raise ValueError(f"{meta_path}: JSON nested too deeply: not a SceneSet") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
         raise ValueError(f"{meta_path}: format is {got!r}, expected {FORMAT_NAME!r}")

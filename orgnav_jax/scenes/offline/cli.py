@@ -21,7 +21,8 @@ def add_parsers(sub) -> None:
     """Add the two subcommands to an argparse subparsers object."""
     i = sub.add_parser("import", help="import the authors' offline AI2-THOR data and save it")
     i.add_argument("--offline-dir", required=True, help="folder of FloorPlanN scene folders")
-    i.add_argument("--out", required=True, help="SceneSet directory (replaced atomically)")
+    i.add_argument("--out", required=True, help="SceneSet directory (an existing SceneSet "
+                   "is replaced atomically; any other non-empty directory is refused)")
     i.add_argument("--scenes", nargs="+", help="only these folders, e.g. FloorPlan1 FloorPlan2")
     i.add_argument("--detection-file", help="detection hdf5 name (default: first found of "
                    "fasterrcnn_features_22cls.hdf5, det_feature_categories.hdf5, ...)")
@@ -42,7 +43,8 @@ def add_parsers(sub) -> None:
     e.add_argument("--rooms", nargs=3, type=int, metavar=("TRAIN", "VAL", "TEST"),
                    help="with --preset: rooms per type per split")
     e.add_argument("--scenes", nargs="+", help="only these scenes, e.g. FloorPlan1")
-    e.add_argument("--out", required=True, help="output folder (one FloorPlanN per scene)")
+    e.add_argument("--out", required=True, help="output folder (one FloorPlanN per scene; "
+                   "empty or an earlier export, anything else is refused)")
     e.add_argument("--hdf5-dtype", default="float32", choices=("float32", "float16"))
     e.add_argument("--episodes-per-type", type=int, default=0, help="also write seeded "
                    "evaluation episodes per split in the authors' form (JSON and pickle)")
@@ -56,9 +58,12 @@ def _rows(args):
         path = Path(args.detection_classes)
         try:
             names = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
+        except (OSError, ValueError) as e:  # JSONDecodeError, UnicodeDecodeError
             raise OfflineFormatError(f"--detection-classes {path}: cannot read a JSON list "
                                      f"of class names ({e})") from None
+        except RecursionError:
+            raise OfflineFormatError(f"--detection-classes {path}: JSON nested too deeply; "
+                                     "expected a JSON list of class names") from None
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
             raise OfflineFormatError(f"--detection-classes {path}: expected a JSON list of "
                                      "class names in row order")
@@ -89,8 +94,9 @@ def _export(args) -> int:
     from orgnav_jax.episodes import sample_episodes
     from orgnav_jax.scenes.builder import build
     from orgnav_jax.scenes.offline.episodes_io import write_offline_episodes
-    from orgnav_jax.scenes.offline.exporter import export_offline
+    from orgnav_jax.scenes.offline.exporter import check_export_dir, export_offline
     from orgnav_jax.scenes.storage import load
+    check_export_dir(args.out)  # before building: refuse a folder that is not ours
     if args.source:
         scenes = load(args.source, mmap=True)
     else:

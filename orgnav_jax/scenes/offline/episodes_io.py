@@ -63,6 +63,10 @@ def read_records(path: str | os.PathLike) -> list[dict]:
             raise OfflineFormatError(
                 f"{path}: not valid JSON ({e}); expected a list of episodes "
                 "{scene, goal_object_type, task_data, state}") from None
+        except RecursionError:
+            raise OfflineFormatError(
+                f"{path}: JSON nested too deeply to read; expected a list of episodes "
+                "{scene, goal_object_type, task_data, state}") from None
     if isinstance(doc, dict) and isinstance(doc.get("episodes"), list):
         doc = doc["episodes"]
     if not isinstance(doc, (list, tuple)):

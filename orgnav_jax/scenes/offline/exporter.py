@@ -8,6 +8,12 @@ exists), resnet18_featuremap.hdf5 ((1, G, 7, 7) per state) and
 fasterrcnn_features_22cls.hdf5 ((22, d + 5) per state), features decoded at the
 SceneSet's widths with scenes.features.decode_*.
 
+Output folder: absent, empty, or an export of ours (is_offline_export: the marker file
+orgnav_export.json, FloorPlanN folders holding only the files above, and the episode
+files the CLI writes); anything else is refused and left untouched. Scene folders of an
+earlier export that are not in this one are kept (exports can be made piecewise with
+--scenes); a re-exported scene replaces its folder, deleting only the files listed here.
+
 Object ids: a SceneSet keeps per-category visibility, not object instances, so each
 present category gets ONE synthetic objectId 'Type|+x.xx|+01.00|+z.zz' placed at the
 mean position of the states that see it (the room's centre if none does); its state
@@ -29,14 +35,73 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from orgnav_jax.constants import CATEGORIES, DONE
+from orgnav_jax.constants import CATEGORIES, DONE, SPLITS
+from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.features import decode_appearance, decode_global
 from orgnav_jax.scenes.keys import scene_state_keys
 from orgnav_jax.scenes.offline import files
+from orgnav_jax.scenes.offline.validate import SCENE_NAME
 from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet
 
 CHUNK = 256  # states decoded per jitted call (fixed: one compile per feature width)
 OBJECT_Y = 1.0
+MARKER_FILE = "orgnav_export.json"  # marks a folder written by export_offline
+MARKER = {"format": "orgnav_jax.offline_export", "version": 1}
+SCENE_FILES = frozenset((files.GRAPH_FILE, files.GRID_FILE, files.VISIBLE_FILES[0],
+                         files.OPTIMAL_FILE, files.RESNET_FILE, files.EXPORT_DETECTION_FILE))
+EPISODES_DIR = "episodes"  # the CLI's --episodes-per-type files: <split>.json / .pkl
+EPISODE_FILES = frozenset(f"{split}{suffix}{tmp}" for split in SPLITS
+                          for suffix in (".json", ".pkl") for tmp in ("", ".tmp"))
+
+
+def _only_files(folder: Path, names) -> bool:
+    return all(p.name in names and p.is_file() and not p.is_symlink()
+               for p in folder.iterdir())
+
+
+def is_offline_export(path: str | os.PathLike) -> bool:
+    """True if `path` holds an export of ours and nothing else: the marker file, scene
+    folders FloorPlanN (or their temporary .FloorPlanN.tmp) with only the exporter's
+    files, and an `episodes` folder with only the CLI's episode files."""
+    path = Path(path)
+    try:
+        if json.loads((path / MARKER_FILE).read_text()) != MARKER:
+            return False
+        for p in path.iterdir():
+            if p.is_symlink():
+                return False
+            if p.name == MARKER_FILE and p.is_file():
+                continue
+            if p.name == EPISODES_DIR and p.is_dir():
+                if not _only_files(p, EPISODE_FILES):
+                    return False
+                continue
+            name = p.name[1:-4] if p.name.startswith(".") and p.name.endswith(".tmp") else p.name
+            if not (SCENE_NAME.match(name) and p.is_dir() and _only_files(p, SCENE_FILES)):
+                return False
+    except (OSError, ValueError, RecursionError):
+        return False
+    return True
+
+
+def check_export_dir(out_dir: str | os.PathLike, option: str = "--out") -> None:
+    """Refuse (FileExistsError) an output folder that is a file or non-empty and not an
+    export of ours."""
+    check_output_dir(out_dir, is_offline_export, "an offline export of orgnav_jax "
+                     f"(with {MARKER_FILE})", option=option)
+
+
+def _remove_scene_folder(folder: Path) -> None:
+    """Delete the exporter's files in `folder`, then the folder; anything else there
+    makes it an error (nothing else is deleted)."""
+    for p in folder.iterdir():
+        if p.name in SCENE_FILES and p.is_file() and not p.is_symlink():
+            p.unlink()
+    try:
+        folder.rmdir()
+    except OSError:
+        raise FileExistsError(f"{folder}: holds files the exporter did not write; it is left "
+                              "untouched: choose another --out") from None
 
 
 def object_ids(pose: np.ndarray, visible: np.ndarray, present: np.ndarray) -> dict[int, str]:
@@ -119,22 +184,29 @@ def export_scene(scenes: SceneSet, n: int, folder: Path, hdf5_dtype: str = "floa
 def export_offline(scenes: SceneSet, out_dir: str | os.PathLike, *, hdf5_dtype: str = "float32",
                    progress: bool = False) -> dict:
     """Write every scene of `scenes` as out_dir/FloorPlanN (each replaced atomically).
-    Returns {"scenes", "states", "seconds", "bytes"}."""
+    Returns {"scenes", "states", "seconds", "bytes"}.
+
+    out_dir must be absent, empty or an earlier export (is_offline_export); anything else
+    is refused (FileExistsError) and left untouched."""
     out_dir = Path(out_dir)
+    check_export_dir(out_dir, option="output")
     out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / MARKER_FILE).write_text(json.dumps(MARKER) + "\n")
     t0, states = time.perf_counter(), 0
-    for n, name in enumerate(tqdm(scenes.scene_names, desc="export", disable=not progress)):
-        final, tmp = out_dir / name, out_dir / f".{name}.tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir()
-        try:
-            states += export_scene(scenes, n, tmp, hdf5_dtype)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        if final.exists():
-            shutil.rmtree(final)
-        tmp.rename(final)
+    with tqdm(scenes.scene_names, desc="export", disable=not progress) as bar:
+        for n, name in enumerate(bar):
+            final, tmp = out_dir / name, out_dir / f".{name}.tmp"
+            if tmp.exists():
+                _remove_scene_folder(tmp)  # left by an interrupted export of ours
+            tmp.mkdir()
+            try:
+                states += export_scene(scenes, n, tmp, hdf5_dtype)
+            except BaseException:
+                shutil.rmtree(tmp, ignore_errors=True)  # made by this call
+                raise
+            if final.exists():
+                _remove_scene_folder(final)
+            tmp.rename(final)
     size = sum(f.stat().st_size for d in scenes.scene_names for f in (out_dir / d).iterdir())
     return {"scenes": scenes.num_scenes, "states": states,
             "seconds": round(time.perf_counter() - t0, 3), "bytes": size}

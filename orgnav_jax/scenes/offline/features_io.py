@@ -22,6 +22,7 @@ from orgnav_jax.scenes.offline.validate import OfflineFormatError, check_same_ke
 
 ALL = h5py.h5s.ALL
 BOX_CONF = 5  # columns after the appearance feature: x1, y1, x2, y2, confidence
+F16_MAX = float(np.finfo(np.float16).max)  # 65504
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,6 +132,29 @@ def inspect_scene(folder: Path, keys: list[str], det_path: Path) -> tuple[tuple,
     return g, d
 
 
+def check_finite(values: np.ndarray, path: Path, key: str, rows=None) -> None:
+    """A dataset's values (float32) must be finite and fit the float16 the SceneSet
+    stores (|x| <= 65504); the error names the file, the dataset and, for detections,
+    the row (category) and column."""
+    peak = np.max(np.abs(values)) if values.size else 0.0  # NaN propagates
+    if np.isfinite(peak) and peak <= F16_MAX:
+        return
+    bad = ~np.isfinite(values) | (np.abs(values) > F16_MAX)
+    index = np.unravel_index(int(np.argmax(bad)), values.shape)
+    value = float(values[index])
+    what = "NaN" if np.isnan(value) else ("Inf" if np.isinf(value) else
+                                          f"{value:g}, beyond the float16 range")
+    where = ""
+    if rows is not None:  # detection (22, d + 5): name the category row and the column
+        r, col = (int(i) for i in index)
+        d = values.shape[1] - BOX_CONF
+        part = ("appearance feature" if col < d else
+                "box" if col < d + 4 else "confidence")
+        where = f" row {int(rows[r])} ({CATEGORIES[r]}) {part}"
+    raise OfflineFormatError(f"{path} dataset {key!r}:{where} holds {what}; expected finite "
+                             f"features (|x| <= {F16_MAX:g}, stored as float16)")
+
+
 def stream_scene(folder: Path, keys: list[str], det_path: Path, layout: FeatureLayout,
                  glob: np.ndarray, appearance: np.ndarray, det_box: np.ndarray,
                  det_conf: np.ndarray) -> None:
@@ -144,9 +168,11 @@ def stream_scene(folder: Path, keys: list[str], det_path: Path, layout: FeatureL
     with _open(resnet_path) as fg, _open(det_path) as fd:
         for i, key in enumerate(keys):
             _dataset(fg, key, resnet_path, layout.global_shape).read(ALL, ALL, gbuf)
+            check_finite(gbuf, resnet_path, key)
             glob[i] = gbuf.reshape(layout.global_shape[-3:]).transpose(1, 2, 0)
             _dataset(fd, key, det_path, layout.det_shape).read(ALL, ALL, dbuf)
             sel = dbuf[rows]
+            check_finite(sel, det_path, key, rows)
             appearance[i] = sel[:, :d]
             det_box[i] = sel[:, d:d + 4]
             det_conf[i] = sel[:, d + 4]

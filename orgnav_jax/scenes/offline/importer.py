@@ -22,6 +22,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from orgnav_jax.constants import NUM_ACTIONS, NUM_CATEGORIES
+from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.builder import (
     EXPERT_CHUNK, FORMAT_NAME, FORMAT_VERSION, STORE_DTYPE, valid_targets,
 )
@@ -34,7 +35,7 @@ from orgnav_jax.scenes.offline.optimal import compare_optimal
 from orgnav_jax.scenes.offline.reader import SceneGraph, read_scene
 from orgnav_jax.scenes.offline.validate import SCENE_NAME, OfflineFormatError, examples
 from orgnav_jax.scenes.sceneset import NO_ACTION, UNREACHABLE, SceneSet
-from orgnav_jax.scenes.storage import save
+from orgnav_jax.scenes.storage import is_scene_set, save
 
 
 def scene_folders(offline_dir: str | os.PathLike, names=None) -> list[Path]:
@@ -108,8 +109,8 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
             raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
     t0 = time.perf_counter()
     folders = scene_folders(offline_dir, scenes)
-    graphs: list[SceneGraph] = [read_scene(f, unknown_types, unmatched_edges)
-                                for f in tqdm(folders, desc="scene graphs", disable=not progress)]
+    with tqdm(folders, desc="scene graphs", disable=not progress) as bar:  # closed on errors
+        graphs: list[SceneGraph] = [read_scene(f, unknown_types, unmatched_edges) for f in bar]
     graphs.sort(key=lambda g: (g.room_type, g.split, g.number))
     numbers = [g.number for g in graphs]
     if len(set(numbers)) != len(numbers):
@@ -131,13 +132,13 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
     det_box = np.zeros((N, S, C, 4), STORE_DTYPE)
     det_conf = np.zeros((N, S, C), STORE_DTYPE)
     t1 = time.perf_counter()
-    for n, (g, det) in enumerate(tqdm(list(zip(graphs, det_paths)), desc="features",
-                                      disable=not progress)):
-        k = len(g.keys)
-        next_state[n, :k], valid[n, :k] = g.next_state, True
-        pose[n, :k], visible[n, :k] = g.pose, g.visible
-        stream_scene(g.folder, g.keys, det, layout, glob[n], appearance[n], det_box[n],
-                     det_conf[n])
+    with tqdm(list(zip(graphs, det_paths)), desc="features", disable=not progress) as bar:
+        for n, (g, det) in enumerate(bar):
+            k = len(g.keys)
+            next_state[n, :k], valid[n, :k] = g.next_state, True
+            pose[n, :k], visible[n, :k] = g.pose, g.visible
+            stream_scene(g.folder, g.keys, det, layout, glob[n], appearance[n], det_box[n],
+                         det_conf[n])
     t_feat = time.perf_counter() - t1
 
     t2 = time.perf_counter()
@@ -178,9 +179,13 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
 
 def import_to(offline_dir: str | os.PathLike, out: str | os.PathLike, **kwargs
               ) -> tuple[SceneSet, dict]:
-    """import_offline, then scenes.save to `out` (loads with scenes.load(out))."""
+    """import_offline, then scenes.save to `out` (loads with scenes.load(out)).
+
+    `out` must be absent, empty or a SceneSet (checked before importing); anything else
+    is refused and left untouched."""
+    check_output_dir(out, is_scene_set, "a SceneSet")
     scenes, report = import_offline(offline_dir, **kwargs)
-    save(scenes, out)
+    save(scenes, out, validate=False)  # import_offline validated it
     return scenes, report
 
 

@@ -47,6 +47,9 @@ def load_json(path: Path, what: str):
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise OfflineFormatError(f"{path}: not valid JSON ({e}); expected {what}") from None
+    except RecursionError:
+        raise OfflineFormatError(f"{path}: JSON nested too deeply to read; expected "
+                                 f"{what}") from None
 
 
 def floorplan_number(name: str, source: str) -> int:

@@ -1,0 +1,346 @@
+"""Bad scene inputs (issue 13, items 1, 5, 11): every case exits 2 with a one-line
+`error: ...` naming the file, field, scene or state at fault, and changes or deletes
+nothing that was there before.
+
+Data: two hand-made offline rooms (test_offline_handmade.write_scene: FloorPlan401,
+train; FloorPlan422, test), imported once; each case copies and corrupts that set.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import pickle
+import re
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from test_offline_handmade import START, write_scene
+
+from orgnav_jax import evaluate
+from orgnav_jax import scenes as S
+from orgnav_jax.constants import CATEGORIES, DONE
+from orgnav_jax.episodes import load_episodes
+from orgnav_jax.scenes import UNREACHABLE
+from orgnav_jax.scenes.__main__ import main
+from orgnav_jax.scenes.offline import OfflineFormatError, import_offline, read_records
+from orgnav_jax.scenes.offline.exporter import MARKER_FILE
+from orgnav_jax.scenes.storage import is_scene_set
+
+NESTED = "[" * 100_000
+
+
+def snapshot(root: Path) -> dict[str, str]:
+    """Every file (its sha256) and directory under root, by relative path."""
+    out = {}
+    for p in sorted(Path(root).rglob("*")):
+        rel = str(p.relative_to(root))
+        out[rel] = hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "<dir>"
+    return out
+
+
+@pytest.fixture(scope="module")
+def offline(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("offline")
+    write_scene(root)                      # FloorPlan401 (train)
+    write_scene(root, "FloorPlan422")      # test split: `evaluate --split test` has a room
+    return root
+
+
+@pytest.fixture(scope="module")
+def good(offline, tmp_path_factory) -> Path:
+    """A valid saved SceneSet (the two rooms imported)."""
+    path = tmp_path_factory.mktemp("good") / "set"
+    S.save(import_offline(offline)[0], path)
+    return path
+
+
+@pytest.fixture
+def copy_of(tmp_path):
+    def copy(src: Path, name: str = "copy") -> Path:
+        return Path(shutil.copytree(src, tmp_path / name))
+    return copy
+
+
+def foreign_dir(tmp_path: Path) -> Path:
+    """A directory of someone else's files: a thesis and a sub-folder."""
+    out = tmp_path / "mine"
+    (out / "chapters").mkdir(parents=True)
+    (out / "thesis.txt").write_text("four years of work\n")
+    (out / "chapters" / "one.tex").write_text("\\chapter{One}\n")
+    return out
+
+
+def assert_unchanged(parent: Path, before: dict) -> None:
+    assert snapshot(parent) == before  # nothing changed, deleted or left behind
+
+
+# ------------------------------------------------------------------ --out protection
+def out_argv(command: str, offline: Path, good: Path, out: Path) -> list:
+    return {"import": ["import", "--offline-dir", offline, "--out", out],
+            "build": ["build", "--preset", "tiny", "--out", out],
+            "export": ["export", "--from", good, "--out", out],
+            "export-preset": ["export", "--preset", "tiny", "--out", out]}[command]
+
+
+@pytest.mark.parametrize("command", ["import", "build", "export", "export-preset"])
+def test_out_refuses_a_directory_of_other_files(command, offline, good, tmp_path, cli_error):
+    out = foreign_dir(tmp_path)
+    before = snapshot(tmp_path)
+    msg = cli_error(main, out_argv(command, offline, good, out))
+    kind = "an offline export" if command.startswith("export") else "a SceneSet"
+    assert re.fullmatch(rf"error: --out {re.escape(str(out))} is a non-empty directory that "
+                        rf"is not {kind}.*; it is left untouched: choose another path", msg)
+    assert_unchanged(tmp_path, before)
+
+
+@pytest.mark.parametrize("command", ["import", "build"])
+def test_out_refuses_a_scene_set_holding_a_user_file(command, offline, good, copy_of,
+                                                     tmp_path, cli_error):
+    out = copy_of(good)
+    (out / "notes.txt").write_text("my notes\n")
+    assert not is_scene_set(out)
+    before = snapshot(tmp_path)
+    msg = cli_error(main, out_argv(command, offline, good, out))
+    assert f"--out {out} is a non-empty directory that is not a SceneSet" in msg
+    assert_unchanged(tmp_path, before)
+    with pytest.raises(FileExistsError, match="not a SceneSet"):  # the API refuses too
+        S.save(S.load(good), out)
+    assert_unchanged(tmp_path, before)
+
+
+def test_out_refuses_a_file(offline, tmp_path, cli_error):
+    out = tmp_path / "results.json"
+    out.write_text("{}")
+    msg = cli_error(main, ["import", "--offline-dir", offline, "--out", out])
+    assert msg == (f"error: --out {out} is a file, expected a directory for a SceneSet; "
+                   "nothing was written")
+    assert out.read_text() == "{}"
+
+
+def test_import_replaces_a_scene_set_of_ours(offline, good, copy_of, tmp_path):
+    out = copy_of(good)
+    assert is_scene_set(out)
+    assert main(["import", "--offline-dir", str(offline), "--out", str(out),
+                 "--scenes", "FloorPlan422"]) == 0
+    assert S.load(out).scene_names == ["FloorPlan422"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["copy"]  # no temp or .old left
+
+
+def test_save_keeps_a_foreign_dot_old_folder(good, copy_of, tmp_path):
+    """The rename dance never deletes a pre-existing `.<name>.old` it did not write."""
+    out = copy_of(good, "set")
+    stray = tmp_path / ".set.old"
+    stray.mkdir()
+    (stray / "keep.txt").write_text("keep")
+    S.save(S.load(good), out)
+    assert (stray / "keep.txt").read_text() == "keep"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".set.old", "set"]
+
+
+def test_export_replaces_its_own_export_only(good, tmp_path, cli_error):
+    out = tmp_path / "exp"
+    assert main(["export", "--from", str(good), "--out", str(out)]) == 0
+    assert (out / MARKER_FILE).is_file()
+    assert main(["export", "--from", str(good), "--out", str(out),
+                 "--scenes", "FloorPlan401"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["FloorPlan401", "FloorPlan422",
+                                                     MARKER_FILE]
+    # a user file inside an exported scene folder: the folder is no longer ours
+    (out / "FloorPlan401" / "my_labels.csv").write_text("a,b\n")
+    before = snapshot(tmp_path)
+    msg = cli_error(main, ["export", "--from", good, "--out", out])
+    assert f"--out {out} is a non-empty directory that is not an offline export" in msg
+    assert_unchanged(tmp_path, before)
+
+
+def test_export_refuses_offline_data_it_did_not_write(offline, good, copy_of, tmp_path,
+                                                      cli_error):
+    """The authors' data (no marker file) is never overwritten by an export."""
+    data = copy_of(offline, "authors")
+    before = snapshot(tmp_path)
+    msg = cli_error(main, ["export", "--from", good, "--out", data])
+    assert "is a non-empty directory that is not an offline export of orgnav_jax" in msg
+    assert_unchanged(tmp_path, before)
+
+
+# ------------------------------------------------------------------ corrupt SceneSets
+def _set(path: Path, field: str, fn) -> None:
+    arr = np.load(path / f"{field}.npy")
+    fn(arr)
+    np.save(path / f"{field}.npy", arr)
+
+
+def _nan_appearance(path):
+    _set(path, "appearance", lambda a: a.__setitem__((1, 7, CATEGORIES.index("Sink"), 2),
+                                                     np.nan))
+
+
+def _inf_global(path):
+    _set(path, "global_feat", lambda a: a.__setitem__((0, 5, 3, 4, 1), np.inf))
+
+
+def _action_9(path):
+    _set(path, "expert_action", lambda a: a.__setitem__((0, 2, CATEGORIES.index("Sink")), 9))
+
+
+def _disagree(path):
+    """Replace one expert action (dist > 0) by a move that does not shorten the path."""
+    dist = np.load(path / "dist.npy").astype(np.int64)
+    act = np.load(path / "expert_action.npy")
+    nxt = np.load(path / "next_state.npy")
+    c = CATEGORIES.index("Sink")
+    for s in range(int(np.load(path / "state_count.npy")[0])):
+        d = dist[0, s, c]
+        if 0 < d < UNREACHABLE:
+            wrong = [m for m in range(DONE) if dist[0, nxt[0, s, m], c] != d - 1]
+            if wrong:
+                act[0, s, c] = wrong[0]
+                np.save(path / "expert_action.npy", act)
+                return s
+    raise AssertionError("no state to corrupt")
+
+
+def _next_out_of_range(path):
+    _set(path, "next_state", lambda a: a.__setitem__((1, 4, 0), 10_000))
+
+
+CORRUPT = {
+    "nan-appearance": (_nan_appearance, r"field 'appearance' holds NaN at scene 1 "
+                       r"\(FloorPlan422\) state 7 category Sink; expected finite values"),
+    "inf-global_feat": (_inf_global, r"field 'global_feat' holds Inf at scene 0 "
+                        r"\(FloorPlan401\) state 5; expected finite values"),
+    "expert_action-9": (_action_9, r"field 'expert_action' holds 9 at scene 0 "
+                        r"\(FloorPlan401\) state 2 target Sink; expected -1 \(NO_ACTION: no "
+                        r"path\), 0\.\.4 \(the first move of a shortest path\) or 5 \(Done"),
+    "dist-expert-disagree": (_disagree, r"fields 'expert_action' and 'dist' disagree at "
+                             r"scene 0 \(FloorPlan401\) state \d+ target Sink: dist \d+, "
+                             r"expert_action \w+ leads to state \d+ at dist \d+; expected \d+"),
+    "next_state-out-of-range": (_next_out_of_range, r"field 'next_state' holds indices "
+                                r"outside \[0, 128\): 10000 at scene 1 \(FloorPlan422\) "
+                                r"state 4 action MoveAhead"),
+}
+
+
+@pytest.mark.parametrize("case", list(CORRUPT))
+def test_corrupt_set_is_refused_by_info_load_and_export(case, good, copy_of, tmp_path,
+                                                        cli_error):
+    corrupt, pattern = CORRUPT[case]
+    path = copy_of(good)
+    corrupt(path)
+    before = snapshot(tmp_path)
+    msg = cli_error(main, ["info", path])
+    assert re.fullmatch(rf"error: {re.escape(str(path))}: {pattern}.*", msg), msg
+    for mmap in (False, True):
+        with pytest.raises(ValueError, match=pattern):
+            S.load(path, mmap=mmap)
+    msg = cli_error(main, ["export", "--from", path, "--out", tmp_path / "exp"])
+    assert re.search(pattern, msg)
+    assert_unchanged(tmp_path, before)
+
+
+@pytest.mark.parametrize("case", ["nan-appearance", "expert_action-9"])
+def test_evaluate_on_a_corrupt_set_fails_instead_of_scoring_zero(case, good, copy_of,
+                                                                  tmp_path, cli_error):
+    corrupt, pattern = CORRUPT[case]
+    path = copy_of(good)
+    corrupt(path)
+    before = snapshot(tmp_path)
+    msg = cli_error(evaluate.main, ["--policy", "expert", "--scenes", path, "--split", "test",
+                                    "--quiet", "--out", tmp_path / "res.json"])
+    assert re.search(pattern, msg)
+    assert_unchanged(tmp_path, before)
+
+
+def test_save_refuses_an_invalid_set(good, tmp_path):
+    bad = S.load(good)
+    bad = bad.replace(expert_action=np.where(np.asarray(bad.expert_action) == DONE, 9,
+                                             bad.expert_action).astype(np.int8))
+    with pytest.raises(ValueError, match="field 'expert_action' holds 9"):
+        S.save(bad, tmp_path / "new")
+    assert not (tmp_path / "new").exists() and list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------ bad offline files
+@pytest.mark.parametrize("file, row, pattern", [
+    ("resnet18_featuremap.hdf5", None, rf"FloorPlan401/resnet18_featuremap\.hdf5 dataset "
+     rf"{re.escape(repr(START))}: holds NaN; expected finite features"),
+    ("fasterrcnn_features_22cls.hdf5", "Sink", r"FloorPlan401/fasterrcnn_features_22cls\.hdf5 "
+     rf"dataset {re.escape(repr(START))}: row 18 \(Sink\) confidence holds Inf; expected "
+     r"finite features"),
+])
+def test_import_rejects_non_finite_features(file, row, pattern, offline, copy_of, tmp_path,
+                                            cli_error):
+    data = copy_of(offline, "data")
+    with h5py.File(data / "FloorPlan401" / file, "a") as f:
+        arr = f[START][()]
+        if row is None:
+            arr[0, 1, 2, 3] = np.nan
+        else:
+            arr[CATEGORIES.index(row), -1] = np.inf
+        f[START][...] = arr
+    before = snapshot(tmp_path)
+    msg = cli_error(main, ["import", "--offline-dir", data, "--out", tmp_path / "out"])
+    assert re.search(pattern, msg), msg
+    assert_unchanged(tmp_path, before)  # no --out written, offline data untouched
+
+
+@pytest.mark.parametrize("file", ["graph.json", "visible_object_map_1.5.json",
+                                  "optimal_action.json"])
+def test_import_deeply_nested_json(file, offline, copy_of, tmp_path, cli_error):
+    data = copy_of(offline, "data")
+    (data / "FloorPlan401" / file).write_text(NESTED)
+    before = snapshot(tmp_path)
+    msg = cli_error(main, ["import", "--offline-dir", data, "--out", tmp_path / "out"])
+    assert re.search(rf"FloorPlan401/{re.escape(file)}: JSON nested too deeply to read; "
+                     r"expected ", msg), msg
+    assert_unchanged(tmp_path, before)
+
+
+def test_detection_classes_file_deeply_nested(offline, tmp_path, cli_error):
+    classes = tmp_path / "classes.json"
+    classes.write_text(NESTED)
+    msg = cli_error(main, ["import", "--offline-dir", offline, "--out", tmp_path / "out",
+                           "--detection-classes", classes])
+    assert msg == (f"error: --detection-classes {classes}: JSON nested too deeply; expected "
+                   "a JSON list of class names")
+    assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------ bad episode files
+def episode_argv(good: Path, episodes: Path, tmp_path: Path) -> list:
+    return ["--policy", "expert", "--scenes", good, "--split", "test", "--quiet",
+            "--episodes", episodes, "--out", tmp_path / "res.json"]
+
+
+def test_deeply_nested_episode_file(good, tmp_path, cli_error):
+    path = tmp_path / "eps.json"
+    path.write_text(NESTED)
+    before = snapshot(tmp_path)
+    msg = cli_error(evaluate.main, episode_argv(good, path, tmp_path))
+    assert msg.startswith(f"error: episode file {path}: JSON nested too deeply to read; "
+                          "expected a JSON episode file")
+    with pytest.raises(OfflineFormatError, match=r"eps\.json: JSON nested too deeply"):
+        read_records(path)  # the authors'-form reader
+    assert_unchanged(tmp_path, before)
+
+
+@pytest.mark.parametrize("content, kind", [
+    (pickle.dumps([{"scene": "FloorPlan422", "goal_object_type": "Sink", "state": START}],
+                  protocol=2), "a Python pickle"),
+    (bytes(range(256)) * 4, "binary data"),
+])
+def test_binary_episode_file(content, kind, good, tmp_path, cli_error):
+    path = tmp_path / "eps.json"
+    path.write_bytes(content)
+    before = snapshot(tmp_path)
+    msg = cli_error(evaluate.main, episode_argv(good, path, tmp_path))
+    assert msg.startswith(f"error: episode file {path} is {kind}, not JSON text; expected a "
+                          "JSON episode file")
+    with pytest.raises(ValueError, match=re.escape(str(path))):
+        load_episodes(path, S.load(good))
+    assert_unchanged(tmp_path, before)
+
