@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from orgnav_jax.constants import CATEGORIES, ROOM_TYPES, category_index
+from orgnav_jax.safe_write import write_text_atomic
 from orgnav_jax.scenes.keys import key_index, state_key
 from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet
 
@@ -56,6 +57,10 @@ def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYP
     """Seeded episodes: for each room type present, `per_room_type` episodes, each a
     scene of that type (uniform), a start state (uniform over the scene's states) and a
     valid target (uniform over those at distance >= min_dist from the start)."""
+    if isinstance(per_room_type, bool) or not isinstance(per_room_type, (int, np.integer)) \
+            or per_room_type < 1:
+        raise ValueError(f"episodes per room type: {per_room_type!r}, expected an integer "
+                         ">= 1")
     rng = np.random.default_rng(seed)
     room_type = np.asarray(scenes.room_type)
     counts = np.asarray(scenes.state_count)
@@ -66,6 +71,7 @@ def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYP
         of_type = np.flatnonzero(room_type == t)
         if of_type.size == 0:
             continue
+        _check_sampleable(scenes, of_type, ROOM_TYPES[t], min_dist, split)
         made = 0
         while made < per_room_type:
             n = int(rng.choice(of_type))
@@ -80,6 +86,22 @@ def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYP
             made += 1
     arrays = {k: np.asarray(v, np.int32) for k, v in out.items()}
     return EpisodeSet(**arrays, split=split, seed=seed)
+
+
+def _check_sampleable(scenes: SceneSet, of_type: np.ndarray, room: str, min_dist: int,
+                      split: str) -> None:
+    """ValueError unless some scene in `of_type` has a start state with a valid target at
+    distance >= min_dist (else sampling that room type would never end)."""
+    for n in of_type:
+        count = int(np.asarray(scenes.state_count)[n])
+        d = np.asarray(scenes.dist[n])[:count]
+        if ((d >= min_dist) & (d < UNREACHABLE) & np.asarray(scenes.targets[n])[None]).any():
+            return
+    names = ", ".join(scenes.scene_names[n] for n in of_type[:5])
+    raise ValueError(f"no episode can be sampled for the {room} rooms"
+                     f"{f' of split {split}' if split else ''} ({names}"
+                     f"{', ...' if of_type.size > 5 else ''}): no valid target is reachable "
+                     f"from any state at distance >= {min_dist}")
 
 
 def to_records(episodes: EpisodeSet, scenes: SceneSet) -> list[dict]:
@@ -157,9 +179,22 @@ def save_episodes(path: str | os.PathLike, episodes: EpisodeSet, scenes: SceneSe
            "episodes": to_records(episodes, scenes)}
     lines = ",\n".join(json.dumps(r) for r in doc.pop("episodes"))  # one episode a line
     text = json.dumps(doc)[:-1] + ', "episodes": [\n' + lines + "\n]}\n"
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    write_text_atomic(path, text)
+
+
+def is_episode_file(path: str | os.PathLike) -> bool:
+    """Whether `path` is an episode file save_episodes wrote (a JSON object of FORMAT);
+    False for anything unreadable, binary or other JSON."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(200)
+        if not head.lstrip().startswith(b"{") or FORMAT.encode() not in head:
+            return False
+        doc = json.loads(Path(path).read_bytes().decode("utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == FORMAT \
+        and isinstance(doc.get("episodes"), list)
 
 
 def load_episodes(path: str | os.PathLike, scenes: SceneSet) -> EpisodeSet:

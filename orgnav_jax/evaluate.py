@@ -25,10 +25,12 @@ from orgnav_jax import env, evaluation
 from orgnav_jax.errors import UserError, run_cli
 from orgnav_jax.episodes import (
     EPISODES_PER_ROOM_TYPE,
+    is_episode_file,
     load_episodes,
     sample_episodes,
     save_episodes,
 )
+from orgnav_jax.safe_write import check_output_file, write_text_atomic
 from orgnav_jax.scenes import SceneSet, load_scenes
 
 POLICIES = {"random": evaluation.random_policy, "expert": evaluation.expert_policy}
@@ -43,7 +45,11 @@ def episode_set(scenes: SceneSet, split: str, episodes_file: str | None, seed: i
                 per_room_type: int, default_path: Path):
     """Replay `episodes_file`, or sample a seeded set and save it at default_path."""
     if episodes_file:
-        return load_episodes(episodes_file, scenes), Path(episodes_file)
+        episodes = load_episodes(episodes_file, scenes)
+        if len(episodes) == 0:
+            raise ValueError(f"episode file {episodes_file} holds no episodes: nothing to "
+                             "evaluate")
+        return episodes, Path(episodes_file)
     episodes = sample_episodes(scenes, per_room_type, seed=seed, split=split)
     save_episodes(default_path, episodes, scenes)
     return episodes, default_path
@@ -97,8 +103,40 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+def is_results_json(path: str | Path) -> bool:
+    """Whether `path` holds evaluation results this module wrote (a JSON object with
+    "overall" and "per_room_type"); False for anything unreadable, binary or other."""
+    try:
+        with open(path, "rb") as f:
+            if not f.read(64).lstrip().startswith(b"{"):
+                return False
+        doc = json.loads(Path(path).read_bytes().decode("utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(doc, dict) and isinstance(doc.get("overall"), dict) \
+        and isinstance(doc.get("per_room_type"), dict)
+
+
+RESULTS = "an evaluation results JSON of orgnav_jax.evaluate"
+EPISODE_FILE = "an episode file of orgnav_jax.evaluate"
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Option values and the --out file, before anything slow (UserError, FileExistsError)."""
+    if args.episodes_per_room_type < 1:
+        raise UserError(f"--episodes-per-room-type {args.episodes_per_room_type}: expected "
+                        "an integer >= 1")
+    if args.batch_size is not None and args.batch_size < 1:
+        raise UserError(f"--batch-size {args.batch_size}: expected an integer >= 1")
+    if args.episode_seed < 0:
+        raise UserError(f"--episode-seed {args.episode_seed}: expected an integer >= 0")
+    if args.out:
+        check_output_file(args.out, is_results_json, RESULTS)
+
+
 def main(argv: list[str] | None = None) -> dict:
     args = parser().parse_args(argv)
+    check_args(args)
     preset, scenes_dir, scene_seed = args.preset, args.scenes, 0
     batch_size = args.batch_size
     from orgnav_jax.tpn.config import tpn_overrides_from_args
@@ -123,18 +161,22 @@ def main(argv: list[str] | None = None) -> dict:
     else:
         policy, policy_params = POLICIES[args.policy or "random"](), None
         name = args.policy or "random"
-    scenes = split_scenes(preset, scenes_dir, args.split, scene_seed)
     tag = Path(scenes_dir).name if scenes_dir else preset
     out = Path(args.out or f"runs/eval/{name}-{tag}-{args.split}.json")
+    check_output_file(out, is_results_json, RESULTS)
+    ep_out = out.with_name(f"episodes-{tag}-{args.split}-seed{args.episode_seed}.json")
+    if not args.episodes:      # a sampled set is saved beside the results
+        check_output_file(ep_out, is_episode_file, EPISODE_FILE,
+                          option="the episode file beside --out")
+    scenes = split_scenes(preset, scenes_dir, args.split, scene_seed)
     episodes, ep_path = episode_set(
         scenes, args.split, args.episodes, args.episode_seed, args.episodes_per_room_type,
-        out.with_name(f"episodes-{tag}-{args.split}-seed{args.episode_seed}.json"))
+        ep_out)
     result = run(policy, policy_params, scenes, episodes, args.seed, not args.quiet,
                  batch_size or 1000)
     result.update({"policy": name, "split": args.split, "scenes": tag,
                    "episode_file": str(ep_path)})
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
+    write_text_atomic(out, json.dumps(result, indent=1))
     print_results(policy.name, result)
     print(f"\nresults: {out}\nepisodes: {ep_path}")
     return result

@@ -121,6 +121,10 @@ def run_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: Epis
     so the jitted scan compiles once."""
     num_steps = max(params.max_steps)
     n = len(episodes)
+    if n == 0:
+        raise ValueError("no episodes to evaluate (an empty episode set)")
+    if batch_size < 1:
+        raise ValueError(f"batch_size {batch_size}, expected an integer >= 1")
     out: dict[str, list] = {k: [] for k in (*OUTCOMES, "path_len", "steps", *COUNTS)}
     key = jax.random.PRNGKey(seed)
     for lo in range(0, n, batch_size):

@@ -81,7 +81,11 @@ def main_tpn(argv: list[str]) -> dict:
             raise UserError("--stage tpn needs --base RUN_DIR (a finished training run)")
         load_config(fields["base_dir"])      # a training run (clear errors otherwise)
         cfg = get_tpn_config(**fields)
+    from orgnav_jax.training.policy import preflight_tpn
+    preflight_tpn(cfg, load_config(cfg.base_dir))   # ranges, scenes, memory: before writing
     from orgnav_jax.tpn.stage2 import train_tpn
+    if cfg.budget_notice():
+        print(cfg.budget_notice(), file=sys.stderr, flush=True)
     print(f"TPN run {cfg.run_dir}: base {cfg.base_dir}, {cfg.num_envs} episodes x "
           f"{cfg.max_steps} steps per update, {cfg.total_episodes:,} episodes, deadlock "
           f"detector {cfg.deadlock}", flush=True)
@@ -133,7 +137,11 @@ def main(argv: list[str] | None = None) -> dict:
         if pipeline:
             overrides.setdefault("run_dir", f"runs/{args.preset}-small")
         cfg = get_config(pipeline[0] if pipeline else args.preset, **overrides)
+    from orgnav_jax.training.policy import preflight
+    preflight(cfg)             # ranges, train and val rooms, memory: before writing anything
     from orgnav_jax.training.loop import train     # imports JAX; after argument checks
+    if cfg.budget_notice():
+        print(cfg.budget_notice(), file=sys.stderr, flush=True)
     print(f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {cfg.num_envs} envs x "
           f"{cfg.rollout_len} steps, {cfg.total_env_steps:,} env steps", flush=True)
     summary = train(cfg, resume=args.resume, progress=not args.quiet)

@@ -10,9 +10,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 from pathlib import Path
 
-from orgnav_jax.training.config import CONFIG_VERSION, _parse_bool, read_config
+from orgnav_jax.training.config import (
+    COUNT, CONFIG_VERSION, INT32_MAX, POSITIVE, SEED, Range, _parse_bool, check_ranges,
+    check_types, read_config)
 
 SCOPES = ("actor", "trunk", "all")          # parameters a test-time update changes
 DETECTORS = ("visited", "cosine")           # external memory: visited set or feature match
@@ -58,21 +61,36 @@ class TPNConfig:
     def num_updates(self) -> int:
         return max(1, self.total_episodes // self.num_envs)
 
+    @property
+    def num_chunks(self) -> int:
+        """Jitted chunks a stage-2 run does: whole chunks of updates_per_chunk updates."""
+        return math.ceil(self.num_updates / self.updates_per_chunk)
+
+    @property
+    def episodes_run(self) -> int:
+        """Episodes a stage-2 run trains on: num_chunks x updates_per_chunk x num_envs."""
+        return self.num_chunks * self.updates_per_chunk * self.num_envs
+
+    def budget_notice(self) -> str | None:
+        """A one-line note when the episodes run differ from total_episodes, else None."""
+        run = self.episodes_run
+        if run == self.total_episodes:
+            return None
+        way = "up" if run > self.total_episodes else "down"
+        return (f"note: total_episodes {self.total_episodes:,} rounds {way} to {run:,} "
+                f"(whole chunks of {self.updates_per_chunk} update"
+                f"{'s' * (self.updates_per_chunk != 1)} x {self.num_envs} episodes)")
+
     def validate(self) -> "TPNConfig":
+        """Check every field's type and range; ValueError naming the field, its value and
+        the expected range (FIELD_RANGES)."""
+        check_types(self, "TPN config field")
         for name, allowed in (("scope", SCOPES), ("deadlock", DETECTORS), ("when", WHEN),
                               ("target", TARGETS), ("act", ("sample", "greedy"))):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"TPN config field {name!r}: {getattr(self, name)!r}, "
                                  f"expected one of {list(allowed)}")
-        for f in ("action_embed", "mlp", "top_k", "max_steps", "num_envs", "total_episodes",
-                  "updates_per_chunk", "signature_dim"):
-            if getattr(self, f) < 1:
-                raise ValueError(f"TPN config field {f!r} must be >= 1, got {getattr(self, f)}")
-        if self.reset_every < 0:
-            raise ValueError("TPN config field 'reset_every' must be >= 0 (0: reset at "
-                             f"episode starts only), got {self.reset_every}")
-        if not -1.0 <= self.cosine_threshold <= 1.0:
-            raise ValueError("TPN config field 'cosine_threshold' must lie in [-1, 1]")
+        check_ranges(self, FIELD_RANGES, "TPN config field")
         return self
 
     def test_time(self) -> "TPNConfig":
@@ -86,6 +104,20 @@ class TPNConfig:
 
 
 FIELDS = {f.name for f in dataclasses.fields(TPNConfig)}
+
+# The range of every numeric TPNConfig field.
+FIELD_RANGES: dict[str, Range] = {
+    **{f: COUNT for f in ("action_embed", "mlp", "top_k", "signature_dim", "num_envs",
+                          "total_episodes", "updates_per_chunk", "eval_every_chunks",
+                          "eval_episodes_per_room_type", "checkpoint_every_chunks",
+                          "keep_checkpoints")},
+    "max_steps": Range(lo=1, hi=INT32_MAX - 1),
+    "seed": SEED,
+    "cosine_threshold": Range(lo=-1, hi=1),
+    "lr": POSITIVE, "max_grad_norm": POSITIVE,
+    "tpn_lr": Range(lo=0, note="0: no test-time update"),
+    "reset_every": Range(lo=0, note="0: reset at episode starts only"),
+}
 
 
 def get_tpn_config(**fields) -> TPNConfig:

@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
+import numbers
 from pathlib import Path
 
 CONFIG_VERSION = 3   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step
@@ -21,6 +23,79 @@ IL_MODES = ("none", "deadlock", "all", "failed")   # which steps get the imitati
 IL_STEPS = ("cause", "state")        # supervise the action that led into a deadlock, or
                                      # the action taken at the deadlock state
 IL_NORMS = ("per_step", "masked_mean")   # sum / (T*N) (as the release), or mean over IL steps
+
+
+INT32_MAX = 2 ** 31 - 1
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """The allowed values of a numeric config field: lo (<= or <) value (<= or <) hi;
+    floats must be finite; `note` explains a special value."""
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    note: str = ""
+
+    def ok(self, x) -> bool:
+        if isinstance(x, float) and not math.isfinite(x):
+            return False
+        return ((self.lo is None or (x > self.lo if self.lo_open else x >= self.lo))
+                and (self.hi is None or (x < self.hi if self.hi_open else x <= self.hi)))
+
+    def text(self, name: str, integer: bool) -> str:
+        """The range in words: "0 < gamma <= 1", "an integer num_envs >= 1"."""
+        num = lambda x: f"{x:,}" if float(x).is_integer() and abs(x) >= 1e4 else f"{x:g}"
+        if self.lo is not None and self.hi is not None:
+            out = (f"{num(self.lo)} {'<' if self.lo_open else '<='} {name} "
+                   f"{'<' if self.hi_open else '<='} {num(self.hi)}")
+        elif self.lo is not None:
+            out = f"{name} {'>' if self.lo_open else '>='} {num(self.lo)}"
+            out += "" if integer else ", finite"
+        else:
+            out = f"a finite {name}"
+        out = f"an integer {out}" if integer else out
+        return out + (f" ({self.note})" if self.note else "")
+
+
+COUNT = Range(lo=1)                    # counts, widths, budgets
+SEED = Range(lo=0, hi=INT32_MAX)
+POSITIVE = Range(lo=0, lo_open=True)   # finite and > 0
+NON_NEGATIVE = Range(lo=0)             # finite and >= 0
+FINITE = Range()
+
+
+def check_types(cfg, prefix: str) -> None:
+    """Each field holds a value of its declared kind (int, float, bool, str, None); a
+    config read from JSON may not. ValueError naming the field otherwise."""
+    for f in dataclasses.fields(cfg):
+        value, kind = getattr(cfg, f.name), type(f.default)
+        if kind is bool:
+            ok = isinstance(value, bool)
+        elif kind is int:
+            ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+        elif kind is float:
+            ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        elif f.default is None:
+            ok = value is None or isinstance(value, str)
+        else:
+            ok = isinstance(value, kind)
+        if not ok:
+            want = {bool: "true or false", int: "an integer", float: "a number",
+                    str: "a string"}.get(kind, "a string or null")
+            raise ValueError(f"{prefix} {f.name!r}: {value!r}, expected {want}")
+
+
+def check_ranges(cfg, ranges: dict[str, Range], prefix: str) -> None:
+    """ValueError for the first field outside its Range: `<prefix> 'gamma': 2.0, expected
+    0 < gamma <= 1`."""
+    for name, rng in ranges.items():
+        value = getattr(cfg, name)
+        if not rng.ok(value):
+            integer = isinstance(value, numbers.Integral)
+            raise ValueError(f"{prefix} {name!r}: {value!r}, expected "
+                             f"{rng.text(name, integer)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,8 +149,33 @@ class TrainConfig:
     def num_updates(self) -> int:
         return max(1, self.total_env_steps // self.steps_per_update)
 
+    @property
+    def num_chunks(self) -> int:
+        """Jitted chunks a run does: whole chunks of updates_per_chunk updates."""
+        return math.ceil(self.num_updates / self.updates_per_chunk)
+
+    @property
+    def env_steps_run(self) -> int:
+        """Env steps a run does: num_chunks x updates_per_chunk x num_envs x rollout_len
+        (total_env_steps rounded to whole chunks of whole updates)."""
+        return self.num_chunks * self.updates_per_chunk * self.steps_per_update
+
+    def budget_notice(self) -> str | None:
+        """A one-line note when the steps run differ from total_env_steps, else None."""
+        run = self.env_steps_run
+        if run == self.total_env_steps:
+            return None
+        way = "up" if run > self.total_env_steps else "down"
+        return (f"note: total_env_steps {self.total_env_steps:,} rounds {way} to {run:,} "
+                f"(whole chunks of {self.updates_per_chunk} update"
+                f"{'s' * (self.updates_per_chunk != 1)} x {self.num_envs} envs x "
+                f"{self.rollout_len} steps)")
+
     def validate(self) -> "TrainConfig":
+        """Check every field's type and range; ValueError naming the field, its value and
+        the expected range (FIELD_RANGES, docs/training.md)."""
         from orgnav_jax.models import ENCODERS
+        check_types(self, "config field")
         if self.model not in ENCODERS:
             raise ValueError(f"config field 'model': unknown model {self.model!r}, expected "
                              f"one of {sorted(ENCODERS)}")
@@ -86,15 +186,30 @@ class TrainConfig:
                                  f"one of {list(allowed)}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"config field 'dropout' must lie in [0, 1), got {self.dropout}")
-        for f in ("num_envs", "rollout_len", "hidden", "lstm_layers", "updates_per_chunk",
-                  "total_env_steps", "max_steps"):
-            if getattr(self, f) < 1:
-                raise ValueError(f"config field {f!r} must be >= 1, got {getattr(self, f)}")
+        check_ranges(self, FIELD_RANGES, "config field")
         return self
 
     def to_json(self) -> str:
         return json.dumps({"version": CONFIG_VERSION, **dataclasses.asdict(self)}, indent=1)
 
+
+# The range of every numeric TrainConfig field (dropout: [0, 1), checked apart).
+FIELD_RANGES: dict[str, Range] = {
+    "scene_seed": SEED, "seed": SEED,
+    **{f: COUNT for f in ("glob_channels", "action_embed", "fuse_channels", "hidden",
+                          "lstm_layers", "num_envs", "rollout_len", "total_env_steps",
+                          "updates_per_chunk", "eval_every_chunks",
+                          "eval_episodes_per_room_type", "checkpoint_every_chunks",
+                          "keep_checkpoints")},
+    # the env counts steps in int32 and keeps a trail of max_steps + 1 states per env
+    # (the memory check, training/memory.py, bounds it far lower)
+    "max_steps": Range(lo=1, hi=INT32_MAX - 1),
+    "lr": POSITIVE, "adam_eps": POSITIVE, "max_grad_norm": POSITIVE,
+    "gamma": Range(lo=0, hi=1, lo_open=True),
+    "gae_lambda": Range(lo=0, hi=1),
+    "entropy_coef": NON_NEGATIVE, "value_coef": NON_NEGATIVE, "il_weight": NON_NEGATIVE,
+    "success_reward": FINITE, "step_penalty": FINITE,
+}
 
 PRESETS: dict[str, dict] = {
     # Small widths: learns on 2 CPU cores in minutes (the default run).

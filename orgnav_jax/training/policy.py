@@ -36,6 +36,46 @@ def scenes_for(cfg: TrainConfig):
     return load_scenes(cfg.scene_preset, cfg.scene_seed, cfg.scenes_dir)
 
 
+def scenes_name(cfg: TrainConfig) -> str:
+    """The scene set a config names, in words (for messages)."""
+    return cfg.scenes_dir or f"of preset {cfg.scene_preset!r} (seed {cfg.scene_seed})"
+
+
+def check_training_scenes(scenes, cfg: TrainConfig) -> None:
+    """Training needs train rooms to learn on and val rooms to select the best checkpoint
+    (SceneSet.split); ValueError naming the scene set otherwise."""
+    import numpy as np
+
+    from orgnav_jax.constants import split_index
+    split = np.asarray(scenes.split)
+    for name, why in (("train", "to learn on"), ("val", "to select the best checkpoint")):
+        if not (split == split_index(name)).any():
+            raise ValueError(f"scenes {scenes_name(cfg)} have no {name} rooms (split field): "
+                             f"training needs {name} rooms {why}")
+
+
+def preflight(cfg: TrainConfig):
+    """Checks before a training run writes or compiles anything -> its SceneSet: the
+    config's ranges, train and val rooms in the scenes, and one jitted chunk's memory
+    estimate against the memory available (training.memory.check_memory)."""
+    from orgnav_jax.training.memory import check_memory
+    cfg.validate()
+    scenes = scenes_for(cfg)
+    check_training_scenes(scenes, cfg)
+    check_memory(cfg, scenes)
+    return scenes
+
+
+def preflight_tpn(cfg, nav_cfg: TrainConfig):
+    """preflight for stage 2: the TPN config on the base run's config and scenes."""
+    from orgnav_jax.training.memory import check_tpn_memory
+    cfg.validate()
+    scenes = scenes_for(nav_cfg)
+    check_training_scenes(scenes, nav_cfg)
+    check_tpn_memory(cfg, nav_cfg, scenes)
+    return scenes
+
+
 def load_run_model(run_dir: str | Path, best: bool = True):
     """-> (NavModel, params, config) of a training run (its best-on-val checkpoint, else
     the latest)."""
