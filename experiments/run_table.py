@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from orgnav_jax import evaluate
-from orgnav_jax.training.checkpoints import has_checkpoints
+from orgnav_jax.training.run_dir import RunLock, is_run_dir
 from orgnav_jax.training.config import TABLE_ROWS, add_config_arguments, get_config, \
     overrides_from_args
 
@@ -63,7 +63,7 @@ def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -
     cfg = get_tpn_config(**tpn_fields, base_dir=str(tpn_dir.parent), seed=seed,
                          run_dir=str(tpn_dir))
     # trains, continues an interrupted run, or (finished) only reloads it
-    train_tpn(cfg, resume=has_checkpoints(tpn_dir), progress=sys.stderr.isatty())
+    train_tpn(cfg, resume=is_run_dir(tpn_dir), progress=sys.stderr.isatty())
     flags = [f"--{k.replace('_', '-')}={v}" for k, v in TPN_VARIANTS[variant].items()]
     flags += [f"--tpn-lr={float(lr)}"] if lr else []
     return evaluate.main(["--tpn", str(tpn_dir), "--split", "test", "--out", str(results),
@@ -78,7 +78,7 @@ def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
     if results.exists():
         return json.loads(results.read_text())["overall"]
     cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir)})
-    train(cfg, resume=has_checkpoints(run_dir), progress=sys.stderr.isatty())
+    train(cfg, resume=is_run_dir(run_dir), progress=sys.stderr.isatty())
     return evaluate.main(["--checkpoint", str(run_dir), "--split", "test", "--out",
                           str(results), "--quiet"])["overall"]
 
@@ -175,21 +175,23 @@ def main(argv: list[str] | None = None) -> None:
     tpn_fields = {} if args.tpn_episodes is None else {"total_episodes": args.tpn_episodes}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    # rows of earlier invocations with the same --out stay in the table
-    saved = out / "results.json"
-    results: dict[str, dict[str, dict]] = json.loads(saved.read_text()) if saved.exists() else {}
-    for seed in args.seeds:                     # seed-major: a partial table covers all rows
-        for row in args.rows:
-            metrics = (run_tpn(row, seed, out, overrides, tpn_fields) if "+" in row
-                       else run_one(row, seed, out, overrides))
-            results.setdefault(row, {})[str(seed)] = metrics
-            print(f"{row} seed {seed}: " + ", ".join(f"{m} {100 * metrics[m]:.1f}"
-                                                      for m in METRICS), flush=True)
-            write_table(out, results)
-    print(write_table(out, results))
-    curves = write_curves(out, results)
-    if curves:
-        print(f"learning curves: {curves}")
+    with RunLock(out):        # one table writer per --out (results.json is rewritten)
+        # rows of earlier invocations with the same --out stay in the table
+        saved = out / "results.json"
+        results: dict[str, dict[str, dict]] = (json.loads(saved.read_text())
+                                               if saved.exists() else {})
+        for seed in args.seeds:                 # seed-major: a partial table covers all rows
+            for row in args.rows:
+                metrics = (run_tpn(row, seed, out, overrides, tpn_fields) if "+" in row
+                           else run_one(row, seed, out, overrides))
+                results.setdefault(row, {})[str(seed)] = metrics
+                print(f"{row} seed {seed}: " + ", ".join(f"{m} {100 * metrics[m]:.1f}"
+                                                          for m in METRICS), flush=True)
+                write_table(out, results)
+        print(write_table(out, results))
+        curves = write_curves(out, results)
+        if curves:
+            print(f"learning curves: {curves}")
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orgnav_jax.training.checkpoints import has_checkpoints
+from orgnav_jax.training.run_dir import is_run_dir
 from orgnav_jax.training.config import TrainConfig, get_config, load_config
 
 
@@ -94,9 +94,9 @@ def main(argv: list[str] | None = None) -> None:
             cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir),
                                      "total_env_steps": args.total_env_steps})
             print(f"{name} seed {seed}: {row} {overrides}", flush=True)
-            if not has_checkpoints(run_dir) or load_config(run_dir).total_env_steps <= \
+            if not is_run_dir(run_dir) or load_config(run_dir).total_env_steps <= \
                     args.total_env_steps:      # (a run extended beyond the sweep: read it)
-                train(cfg, resume=has_checkpoints(run_dir), progress=sys.stderr.isatty())
+                train(cfg, resume=is_run_dir(run_dir), progress=sys.stderr.isatty())
             record = best_val(run_dir, args.total_env_steps + cfg.steps_per_update *
                               cfg.updates_per_chunk)
             results.setdefault(name, {})[str(seed)] = {

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from orgnav_jax import evaluate
 from orgnav_jax.errors import UserError, run_cli
+from orgnav_jax.training.run_dir import is_run_dir
 from orgnav_jax.training.config import (
     PRESETS, add_config_arguments, get_config, load_config, overrides_from_args)
 
@@ -43,6 +44,10 @@ def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     return ap
 
+
+# options that may go with --resume --run-dir alone (the rest come from config.json)
+RESUME_OPTIONS = {"run_dir", "total_env_steps", "scenes_dir"}
+RESUME_TPN_OPTIONS = {"run_dir", "total_episodes", "base_dir"}
 
 # presets that run both stages: the navigation preset, then its TPN, evaluated with the
 # test-time learning rate chosen on val on the small benchmark (README, Tables 1-2)
@@ -74,15 +79,17 @@ def main_tpn(argv: list[str]) -> dict:
     from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config, tpn_overrides_from_args
     args = tpn_parser().parse_args(argv)
     fields = tpn_overrides_from_args(args)
-    if args.resume and "run_dir" in fields and not (set(fields) - {"run_dir"}):
-        cfg = load_tpn_config(fields["run_dir"])
+    if args.resume and "run_dir" in fields and not (set(fields) - RESUME_TPN_OPTIONS):
+        # resume with the saved config, in the directory given (a copied or moved run)
+        cfg = dataclasses.replace(load_tpn_config(fields["run_dir"]), **fields)
+        if not Path(cfg.base_dir).exists():
+            raise UserError(f"--resume {cfg.run_dir}: its base run {cfg.base_dir} does not "
+                            "exist (moved?); add --base NEW_BASE_DIR")
     else:
         if not fields.get("base_dir"):
             raise UserError("--stage tpn needs --base RUN_DIR (a finished training run)")
         load_config(fields["base_dir"])      # a training run (clear errors otherwise)
         cfg = get_tpn_config(**fields)
-    from orgnav_jax.training.policy import preflight_tpn
-    preflight_tpn(cfg, load_config(cfg.base_dir))   # ranges, scenes, memory: before writing
     from orgnav_jax.tpn.stage2 import train_tpn
     if cfg.budget_notice():
         print(cfg.budget_notice(), file=sys.stderr, flush=True)
@@ -112,8 +119,7 @@ def pipeline_tpn_argv(args, run_dir: str, default_lr: float) -> list[str]:
     argv += ["--total-episodes", str(args.tpn_episodes)] if args.tpn_episodes else []
     argv += ["--quiet"] if args.quiet else []
     argv += ["--no-test"] if args.no_test else []
-    from orgnav_jax.training.checkpoints import has_checkpoints
-    argv += ["--resume"] if args.resume and has_checkpoints(Path(run_dir) / "tpn") else []
+    argv += ["--resume"] if args.resume and is_run_dir(Path(run_dir) / "tpn") else []
     return argv
 
 
@@ -129,16 +135,14 @@ def main(argv: list[str] | None = None) -> dict:
     if (args.tpn_lr or args.tpn_episodes) and not pipeline:
         raise UserError(f"--tpn-lr and --tpn-episodes go with the presets "
                         f"{sorted(TPN_PIPELINES)}")
-    if args.resume and "run_dir" in overrides and not (
-            set(overrides) - {"run_dir", "total_env_steps"}):
-        # resume with the saved config (its budget may be extended)
+    if args.resume and "run_dir" in overrides and not (set(overrides) - RESUME_OPTIONS):
+        # resume with the saved config, in the directory given (a copied or moved run);
+        # the budget may be extended and the scenes moved
         cfg = dataclasses.replace(load_config(overrides["run_dir"]), **overrides)
     else:
         if pipeline:
             overrides.setdefault("run_dir", f"runs/{args.preset}-small")
         cfg = get_config(pipeline[0] if pipeline else args.preset, **overrides)
-    from orgnav_jax.training.policy import preflight
-    preflight(cfg)             # ranges, train and val rooms, memory: before writing anything
     from orgnav_jax.training.loop import train     # imports JAX; after argument checks
     if cfg.budget_notice():
         print(cfg.budget_notice(), file=sys.stderr, flush=True)

@@ -234,3 +234,7 @@ def test_bad_tpn_input_is_a_clear_error(base_run, tpn_run, tmp_path, cli_error):
         evaluate.main, ["--tpn", tpn_run, "--scope", "head"]))
     with pytest.raises(FileExistsError, match="--resume"):
         train_tpn(load_tpn_config(tpn_run), progress=False)
+    from orgnav_jax.training.run_dir import RunLock
+    with RunLock(tpn_run):              # another process trains there: refused, named
+        assert "is in use by process" in cli_error(
+            train_cli.main, ["--stage", "tpn", "--run-dir", tpn_run, "--resume"])

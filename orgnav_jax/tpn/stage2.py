@@ -31,9 +31,10 @@ from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
 from orgnav_jax.tpn.policy import build_tpn, init_tpn_params
-from orgnav_jax.training.checkpoints import RunCheckpoints, check_run_dir, write_config
+from orgnav_jax.training.checkpoints import RunCheckpoints
 from orgnav_jax.training.losses import imitation_loss
-from orgnav_jax.training.loop import MetricsLog, NonFiniteLoss
+from orgnav_jax.training.loop import NonFiniteLoss
+from orgnav_jax.training.run_dir import MetricsLog, open_run_dir, write_config
 
 
 @struct.dataclass
@@ -133,12 +134,18 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
               stop_after_chunks: int | None = None) -> dict:
     """Train (or resume) the TPN of cfg.run_dir on its frozen base -> summary dict.
     The best-on-val TPN (accuracy on the val episodes' deadlock steps) is kept."""
-    from orgnav_jax.training.policy import load_run_model, scenes_for
-    run_dir = Path(cfg.run_dir)
-    check_run_dir(run_dir, cfg, resume, load_tpn_config)
+    from orgnav_jax.training.config import load_config
+    from orgnav_jax.training.policy import load_run_model, preflight_tpn
+    # config ranges, scenes, memory, then the base's checkpoint: before anything is written
+    scenes = preflight_tpn(cfg, load_config(cfg.base_dir))
     model, base_params, nav_cfg = load_run_model(cfg.base_dir)
-    write_config(run_dir, cfg)
-    scenes = scenes_for(nav_cfg)
+    with open_run_dir(cfg.run_dir, cfg, resume, load_tpn_config) as run_dir:
+        return _train_tpn(cfg, run_dir, model, base_params, nav_cfg, scenes, resume,
+                          progress, stop_after_chunks)
+
+
+def _train_tpn(cfg: TPNConfig, run_dir: Path, model, base_params, nav_cfg, scenes,
+               resume: bool, progress: bool, stop_after_chunks: int | None) -> dict:
     train_scenes = scenes.split_view("train").to_device()
     val_scenes = scenes.split_view("val").to_device()
     tpn = build_tpn(nav_cfg, cfg)
@@ -153,13 +160,17 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
         4 * cfg.eval_episodes_per_room_type)
     val_fn = jax.jit(lambda p: tpn_loss(p, tpn, val_batch)[1])
     ckpt = RunCheckpoints(run_dir, cfg.keep_checkpoints)
-    log = MetricsLog(run_dir, step_name="episodes")
     best, chunk = {"accuracy": -1.0}, 0
     if resume and ckpt.latest_step() is not None:
-        runner, meta = ckpt.restore(runner)
+        runner, meta = ckpt.restore(runner, fallback=True)
         chunk, best = meta["chunk"], meta["best"]
     num_chunks = math.ceil(cfg.num_updates / cfg.updates_per_chunk)
     episodes_per_chunk = cfg.updates_per_chunk * cfg.num_envs
+    write_config(run_dir, cfg)
+    log = MetricsLog(run_dir, step_name="episodes",
+                     resume_from=chunk * episodes_per_chunk if resume else None)
+    if resume:
+        ckpt.drop_best_after(chunk * episodes_per_chunk)
     bar = tqdm(total=num_chunks * episodes_per_chunk, initial=chunk * episodes_per_chunk,
                unit="ep", desc="train TPN", disable=not progress, file=sys.stderr)
     t_start = time.perf_counter()
@@ -169,6 +180,7 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
         metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
         if not metrics.pop("loss_finite"):
             bar.close()
+            log.close()
             raise NonFiniteLoss(f"non-finite TPN loss in chunk {chunk + 1}; the run stopped "
                                 f"and the last good checkpoint in {run_dir} is kept")
         runner, chunk = new_runner, chunk + 1
@@ -189,5 +201,6 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
         if stop_after_chunks is not None and chunk >= stop_after_chunks and not last:
             break
     bar.close()
+    log.close()
     return {"run_dir": str(run_dir), "episodes": chunk * episodes_per_chunk, "chunks": chunk,
             "best_val": best, "wall_s": time.perf_counter() - t_start, "runner": runner}

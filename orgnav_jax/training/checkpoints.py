@@ -1,25 +1,25 @@
 """Checkpoints with orbax: the whole RunnerState plus a JSON of config and progress.
 
 Layout of a run directory:
-    config.json          the TrainConfig (written once, atomically)
     checkpoints/<step>/  the latest runs (orbax; a save is written to a temporary
                          directory and renamed when complete, so an interrupted save
                          leaves the previous checkpoint loadable)
     best/<step>/         the best-on-val parameters
-    metrics.jsonl, tb/   logs
+    broken_checkpoints/  latest-N checkpoints that could not be read on resume
+(config.json, the lock and the logs: training/run_dir.py)
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
+import sys
 from pathlib import Path
 
 import jax
 import orbax.checkpoint as ocp
 
-from orgnav_jax.training.config import CONFIG_VERSION, READABLE_VERSIONS, TrainConfig
+from orgnav_jax.training.config import CONFIG_VERSION, READABLE_VERSIONS
 
 logging.getLogger("absl").setLevel(logging.ERROR)
 
@@ -58,7 +58,7 @@ class RunCheckpoints:
     """The latest-N and best-on-val checkpoint managers of a run directory."""
 
     def __init__(self, run_dir: str | os.PathLike, keep: int = 2):
-        self.run_dir = Path(run_dir)
+        self.run_dir, self.keep = Path(run_dir), keep
         self.latest = _manager(self.run_dir / "checkpoints", keep)
         self.best = _manager(self.run_dir / "best", 1)
 
@@ -70,63 +70,89 @@ class RunCheckpoints:
                                                    meta=ocp.args.JsonSave(meta)), force=True)
         manager.wait_until_finished()
 
+    def drop_best_after(self, step: int) -> None:
+        """A resume from `step` retraces the steps after it: a best-on-val checkpoint
+        saved after it belongs to the discarded part and is saved again when reached."""
+        for s in self.best.all_steps():
+            if s > step:
+                self.best.delete(s)
+
     def latest_step(self) -> int | None:
         return self.latest.latest_step()
 
-    def restore(self, like, best: bool = False, step: int | None = None):
-        """-> (state shaped like `like`, meta dict). Clear errors for a checkpoint from
-        another model or version."""
+    def restore(self, like, best: bool = False, step: int | None = None,
+                fallback: bool = False):
+        """-> (state shaped like `like`, meta dict), from the newest checkpoint (or `best`,
+        or `step`). Clear errors for a checkpoint from another model or version. With
+        fallback=True (a resume) the newest readable one of the latest-N wins: broken
+        newer ones are named on stderr and moved to broken_checkpoints/ (never deleted);
+        if none can be read, the newest one's error is raised and nothing is moved."""
         manager = self.best if best else self.latest
-        step = manager.latest_step() if step is None else step
-        if step is None:
-            raise FileNotFoundError(f"no {'best' if best else ''} checkpoint in {self.run_dir}")
-        abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, like)
+        if best or step is not None or not fallback:
+            step = manager.latest_step() if step is None else step
+            if step is None:
+                raise FileNotFoundError(f"no {'best ' if best else ''}checkpoint in "
+                                        f"{self.run_dir}")
+            return _restore_one(manager, step, like)
+        steps = sorted(manager.all_steps(), reverse=True)
+        if not steps:
+            raise FileNotFoundError(f"no checkpoint in {self.run_dir}/checkpoints")
+        broken = []
+        for s in steps:
+            try:
+                out = _restore_one(manager, s, like)
+            except CheckpointUnreadable as err:
+                broken.append((s, err))
+                continue
+            for bad, err in broken:
+                aside = _set_aside(self.run_dir, Path(manager.directory) / str(bad))
+                print(f"warning: {err}; moved it to {aside} and resumed from step {s}",
+                      file=sys.stderr, flush=True)
+            if broken:       # the manager rescans the directory
+                self.latest = _manager(self.run_dir / "checkpoints", self.keep)
+            return out
+        raise broken[0][1]
+
+
+class CheckpointUnreadable(ValueError):
+    """A checkpoint that does not fit the model or cannot be read."""
+
+
+def _restore_one(manager, step: int, like):
+    where = f"checkpoint {manager.directory}/{step}"
+    abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, like)
+    try:
         problem = _mismatch(manager.item_metadata(step)["state"], abstract)
-        if problem:      # checked before any read, so no restore is left half done
-            raise ValueError(f"checkpoint {manager.directory}/{step} does not fit this model "
-                             f"and config (another model or widths?): {problem}")
+    except Exception as err:                        # orbax raises many kinds
+        raise CheckpointUnreadable(f"{where} cannot be read ({_short(err)})") from None
+    if problem:      # checked before any read, so no restore is left half done
+        raise CheckpointUnreadable(f"{where} does not fit this model and config (another "
+                                   f"model or widths, or damaged metadata?): {problem}")
+    try:
         out = manager.restore(step, args=ocp.args.Composite(
             state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()))
-        meta = out["meta"]
-        if meta.get("config_version") not in READABLE_VERSIONS:
-            raise ValueError(f"checkpoint {manager.directory}/{step} has config version "
-                             f"{meta.get('config_version')}, expected one of "
-                             f"{list(READABLE_VERSIONS)}")
-        return out["state"], meta
+    except Exception as err:
+        raise CheckpointUnreadable(f"{where} cannot be read ({_short(err)})") from None
+    meta = out["meta"]
+    if not isinstance(meta, dict) or meta.get("config_version") not in READABLE_VERSIONS:
+        got = meta.get("config_version") if isinstance(meta, dict) else meta
+        raise CheckpointUnreadable(f"{where} has config version {got}, expected one of "
+                                   f"{list(READABLE_VERSIONS)}")
+    return out["state"], meta
 
 
-def has_checkpoints(run_dir: str | os.PathLike) -> bool:
-    """Whether a run directory holds at least one latest-N checkpoint."""
-    path = Path(run_dir) / "checkpoints"
-    return path.exists() and any(path.iterdir())
+def _short(err: BaseException, limit: int = 160) -> str:
+    text = " ".join(str(err).split()) or type(err).__name__
+    return f"{type(err).__name__}: {text[:limit]}{'...' if len(text) > limit else ''}"
 
 
-BUDGET_FIELDS = ("total_env_steps", "total_episodes")   # a resume may extend these
-
-
-def check_run_dir(run_dir: str | os.PathLike, cfg, resume: bool, load_saved) -> None:
-    """Before a run starts: --resume needs the saved config (load_saved(run_dir)) to equal
-    cfg, except that the budget may grow (the run continues to the larger budget; it
-    matches a run started with that budget when the old budget ended on an evaluation
-    and checkpoint chunk); a fresh run must not overwrite checkpoints."""
-    if resume:
-        saved = load_saved(run_dir)
-        budget = {f: getattr(cfg, f) for f in BUDGET_FIELDS if hasattr(cfg, f)}
-        if dataclasses.replace(saved, **budget) != cfg:
-            raise ValueError(f"--resume: {run_dir}/config.json differs from the requested "
-                             "config; resume with the same options (or none)")
-        for f, value in budget.items():
-            if value < getattr(saved, f):
-                raise ValueError(f"--resume: {f} {value} is below the run's "
-                                 f"{getattr(saved, f)}; a resume may only extend the budget")
-    elif has_checkpoints(run_dir):
-        raise FileExistsError(f"{run_dir} already holds checkpoints: pass --resume to "
-                              "continue it, or choose another --run-dir")
-
-
-def write_config(run_dir: str | os.PathLike, cfg: TrainConfig) -> None:
-    path = Path(run_dir) / "config.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name("config.json.tmp")
-    tmp.write_text(cfg.to_json())
-    os.replace(tmp, path)
+def _set_aside(run_dir: Path, step_dir: Path) -> Path:
+    """Move a broken checkpoint to run_dir/broken_checkpoints/<step>[.k]."""
+    target = run_dir / "broken_checkpoints" / step_dir.name
+    target.parent.mkdir(exist_ok=True)
+    k = 0
+    while target.exists():
+        k += 1
+        target = target.with_name(f"{step_dir.name}.{k}")
+    os.rename(step_dir, target)
+    return target

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import math
 import sys
 import time
@@ -25,10 +24,12 @@ from tqdm import tqdm
 
 from orgnav_jax import env, evaluation
 from orgnav_jax.episodes import sample_episodes
+from orgnav_jax.errors import UserError
 from orgnav_jax.models import build_model
-from orgnav_jax.training.checkpoints import RunCheckpoints, check_run_dir, write_config
+from orgnav_jax.training.checkpoints import RunCheckpoints
 from orgnav_jax.training.config import TrainConfig, load_config
-from orgnav_jax.training.policy import model_policy, scenes_for
+from orgnav_jax.training.policy import model_policy, preflight
+from orgnav_jax.training.run_dir import MetricsLog, open_run_dir, write_config
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 
 
@@ -47,30 +48,8 @@ def cached_train_chunk(cfg: TrainConfig, model):
     return optimizer, make_train_chunk(cfg, model, optimizer)
 
 
-class NonFiniteLoss(RuntimeError):
+class NonFiniteLoss(UserError, RuntimeError):
     """The loss became NaN or infinite; the last good checkpoint is kept."""
-
-
-class MetricsLog:
-    """Appends one JSON object per record to metrics.jsonl and, if tensorboardX is
-    installed, the same scalars to TensorBoard event files under tb/."""
-
-    def __init__(self, run_dir: Path, step_name: str = "env_steps"):
-        self.path, self.step_name = run_dir / "metrics.jsonl", step_name
-        try:
-            from tensorboardX import SummaryWriter
-            self.tb = SummaryWriter(str(run_dir / "tb"))
-        except ImportError:  # logs stay readable as JSONL
-            self.tb = None
-
-    def write(self, kind: str, step: int, values: dict) -> None:
-        with self.path.open("a") as f:
-            f.write(json.dumps({"kind": kind, self.step_name: step, **values}) + "\n")
-        if self.tb:
-            for k, v in values.items():
-                if isinstance(v, (int, float)) and math.isfinite(v):
-                    self.tb.add_scalar(f"{kind}/{k}", v, step)
-            self.tb.flush()
 
 
 def chunk_summary(m: dict) -> dict:
@@ -93,10 +72,13 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
           stop_after_chunks: int | None = None) -> dict:
     """Train (or resume) the run in cfg.run_dir -> summary dict (best val, env steps).
     stop_after_chunks ends early (for tests of kill-and-resume)."""
-    run_dir = Path(cfg.run_dir)
-    check_run_dir(run_dir, cfg, resume, load_config)
-    write_config(run_dir, cfg)
-    scenes = scenes_for(cfg)
+    scenes = preflight(cfg)     # config ranges, scenes, memory: before anything is written
+    with open_run_dir(cfg.run_dir, cfg, resume, load_config) as run_dir:
+        return _train(cfg, scenes, run_dir, resume, progress, stop_after_chunks)
+
+
+def _train(cfg: TrainConfig, scenes, run_dir: Path, resume: bool, progress: bool,
+           stop_after_chunks: int | None) -> dict:
     train_scenes = scenes.split_view("train").to_device()
     val_scenes = scenes.split_view("val").to_device()
     val_episodes = sample_episodes(val_scenes, cfg.eval_episodes_per_room_type, seed=0,
@@ -105,14 +87,17 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     optimizer, train_chunk = cached_train_chunk(compute_config(cfg), model)
     runner = init_runner(cfg, model, optimizer, train_scenes, jax.random.PRNGKey(cfg.seed))
     ckpt = RunCheckpoints(run_dir, cfg.keep_checkpoints)
-    log = MetricsLog(run_dir)
     best = {"success": -1.0, "spl": -1.0}
     chunk = 0
     if resume and ckpt.latest_step() is not None:
-        runner, meta = ckpt.restore(runner)
+        runner, meta = ckpt.restore(runner, fallback=True)
         chunk, best = meta["chunk"], meta["best"]
     num_chunks = math.ceil(cfg.num_updates / cfg.updates_per_chunk)
     steps_per_chunk = cfg.updates_per_chunk * cfg.steps_per_update
+    write_config(run_dir, cfg)
+    log = MetricsLog(run_dir, resume_from=chunk * steps_per_chunk if resume else None)
+    if resume:
+        ckpt.drop_best_after(chunk * steps_per_chunk)
 
     bar = tqdm(total=num_chunks * steps_per_chunk, initial=chunk * steps_per_chunk,
                unit="step", unit_scale=True, desc=f"train {cfg.model}", disable=not progress,
@@ -128,6 +113,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
             compile_s = dt
         if not metrics.pop("loss_finite"):
             bar.close()
+            log.close()
             raise NonFiniteLoss(f"non-finite loss in chunk {chunk + 1} (updates "
                                 f"{chunk * cfg.updates_per_chunk}..); the run stopped and "
                                 f"the last good checkpoint in {run_dir}/checkpoints is kept")
@@ -151,6 +137,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
         if stop_after_chunks is not None and chunk >= stop_after_chunks and not last:
             break
     bar.close()
+    log.close()
     return {"run_dir": str(run_dir), "env_steps": chunk * steps_per_chunk,
             "chunks": chunk, "best_val": best, "compile_plus_first_chunk_s": compile_s,
             "wall_s": time.perf_counter() - t_start, "runner": runner}

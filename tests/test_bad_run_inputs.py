@@ -1,0 +1,281 @@
+"""Run directories under careless or hostile use: two trainings in one directory, copied
+and moved runs, fresh runs into existing directories, corrupt checkpoints, resumes that
+would duplicate logs, and user errors that must be one line (exit code 2). Every case
+checks that nothing that existed before was changed or deleted."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from orgnav_jax import scenes as scenes_mod
+from orgnav_jax import train as train_cli
+from orgnav_jax.errors import run_cli
+from orgnav_jax.training import loop
+from orgnav_jax.training.config import get_config, load_config
+from orgnav_jax.training.run_dir import LOCK_FILE, RunLock
+
+CHUNK = 16 * 8 * 2          # env steps per chunk of the runs below
+
+
+@pytest.fixture(scope="module")
+def tiny_dir(tmp_path_factory, tiny_scenes):
+    path = tmp_path_factory.mktemp("scenes") / "tiny"
+    scenes_mod.save(tiny_scenes, path)
+    return str(path)
+
+
+def options(tiny_dir, run_dir, **kw) -> dict:
+    """A few-second run on the tiny scenes: 4 chunks of 2 updates of 16 envs x 8 steps."""
+    return dict(dict(scenes_dir=tiny_dir, num_envs=16, rollout_len=8, updates_per_chunk=2,
+                     total_env_steps=4 * CHUNK, eval_every_chunks=2,
+                     eval_episodes_per_room_type=4, checkpoint_every_chunks=1,
+                     run_dir=str(run_dir)), **kw)
+
+
+def cfg_of(tiny_dir, run_dir, **kw):
+    return get_config("tiny", **options(tiny_dir, run_dir, **kw))
+
+
+def argv_of(tiny_dir, run_dir, **kw) -> list[str]:
+    """The CLI options of cfg_of(...), ending the run without a test evaluation."""
+    argv = ["--preset", "tiny", "--no-test", "--quiet"]
+    for k, v in options(tiny_dir, run_dir, **kw).items():
+        argv += ["--" + k.replace("_", "-"), str(v)]
+    return argv
+
+
+def snapshot(path: Path) -> dict[str, str]:
+    """{relative path: sha256} of every file under `path` (directories as '<dir>')."""
+    out = {}
+    for p in sorted(Path(path).rglob("*")):
+        rel = str(p.relative_to(path))
+        out[rel] = "<dir>" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+def leaves(tree):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
+
+
+def records(run_dir) -> list[tuple]:
+    return [(r["kind"], r["env_steps"]) for r in
+            map(json.loads, (Path(run_dir) / "metrics.jsonl").read_text().splitlines())]
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory, tiny_dir):
+    """An uninterrupted 4-chunk run: the reference for every resumed one."""
+    run_dir = tmp_path_factory.mktemp("full") / "run"
+    out = loop.train(cfg_of(tiny_dir, run_dir), progress=False)
+    return run_dir, out["runner"]
+
+
+@pytest.fixture(scope="module")
+def half_run(tmp_path_factory, tiny_dir):
+    """The same run stopped after 2 of its 4 chunks (checkpoints 256 and 512)."""
+    run_dir = tmp_path_factory.mktemp("half") / "run"
+    loop.train(cfg_of(tiny_dir, run_dir), progress=False, stop_after_chunks=2)
+    return run_dir
+
+
+def copy_of(run_dir: Path, where: Path) -> Path:
+    shutil.copytree(run_dir, where)
+    return where
+
+
+# 2. two trainings into one run directory ------------------------------------------------
+
+def test_a_run_directory_in_use_is_refused_and_a_stale_lock_taken_over(
+        tmp_path, tiny_dir, half_run, full_run, cli_error, capsys):
+    run = copy_of(half_run, tmp_path / "run")
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from orgnav_jax.training.run_dir import RunLock; "
+        f"RunLock({str(run)!r}).acquire(); print('locked', flush=True); time.sleep(120)")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        before = snapshot(run)
+        msg = cli_error(train_cli.main, ["--run-dir", run, "--resume", "--quiet", "--no-test"])
+        assert f"is in use by process {holder.pid} on {socket.gethostname()}" in msg
+        assert str(run / LOCK_FILE) in msg
+        assert snapshot(run) == before
+        # the same process holding it (a second training in one program) is refused too
+        with RunLock(tmp_path / "other"):
+            msg = cli_error(train_cli.main, argv_of(tiny_dir, tmp_path / "other"))
+            assert "is in use by process" in msg
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder is gone (killed: its lock file stays): the next resume takes it over
+    assert (run / LOCK_FILE).exists()
+    assert run_cli(train_cli.main, ["--run-dir", str(run), "--resume", "--quiet",
+                                    "--no-test"]) == 0
+    assert "took over the lock of process" in capsys.readouterr().err
+    assert not (run / LOCK_FILE).exists()          # released at the end
+    for a, b in zip(leaves(full_run[1].params), leaves(_restore(run).params)):
+        np.testing.assert_array_equal(a, b)
+
+
+def _restore(run_dir):
+    from orgnav_jax.models import build_model
+    from orgnav_jax.training.checkpoints import RunCheckpoints
+    from orgnav_jax.training.policy import scenes_for
+    from orgnav_jax.training.update import init_runner, make_optimizer
+    cfg = load_config(run_dir)
+    scenes = scenes_for(cfg).split_view("train").to_device()
+    model = build_model(cfg, scenes)
+    like = init_runner(cfg, model, make_optimizer(cfg), scenes, jax.random.PRNGKey(0))
+    return RunCheckpoints(run_dir).restore(like)[0]
+
+
+# 3. a copied or moved run resumes where it is ------------------------------------------
+
+def test_a_copied_run_resumes_in_the_copy_and_a_moved_run_resumes(tmp_path, half_run,
+                                                                 full_run):
+    original = copy_of(half_run, tmp_path / "A")
+    before = snapshot(original)
+    copy = copy_of(original, tmp_path / "B")
+    assert run_cli(train_cli.main, ["--run-dir", str(copy), "--resume", "--quiet",
+                                    "--no-test"]) == 0
+    assert snapshot(original) == before                       # the original is untouched
+    assert load_config(copy).run_dir == str(copy)
+    assert records(copy) == records(full_run[0])
+    moved = tmp_path / "moved"
+    os.rename(copy_of(original, tmp_path / "C"), moved)
+    summary = train_cli.main(["--run-dir", str(moved), "--resume", "--quiet", "--no-test"])
+    assert summary["chunks"] == 4 and summary["run_dir"] == str(moved)
+    for a, b in zip(leaves(full_run[1].params), leaves(_restore(moved).params)):
+        np.testing.assert_array_equal(a, b)
+    assert snapshot(original) == before
+
+
+# 4. a fresh run into an existing run or into someone's files ---------------------------
+
+def test_a_fresh_run_never_writes_into_an_existing_directory(tmp_path, tiny_dir, half_run,
+                                                             cli_error):
+    # a run that crashed before its first checkpoint: config.json and logs, no checkpoints
+    crashed = copy_of(half_run, tmp_path / "crashed")
+    shutil.rmtree(crashed / "checkpoints")
+    (crashed / "checkpoints").mkdir()
+    theirs = tmp_path / "thesis"
+    (theirs / "figures").mkdir(parents=True)
+    (theirs / "thesis.txt").write_text("four years of work")
+    for run_dir, expect in ((crashed, "already holds a run: pass --resume"),
+                            (half_run, "already holds a run: pass --resume"),
+                            (theirs, "is a non-empty directory that is not a run")):
+        before = snapshot(run_dir)
+        msg = cli_error(train_cli.main, argv_of(tiny_dir, run_dir, seed=1))
+        assert expect in msg and str(run_dir) in msg
+        assert snapshot(run_dir) == before
+    msg = cli_error(train_cli.main, ["--run-dir", theirs, "--resume"])
+    assert "is not a training run directory" in msg
+    assert (theirs / "thesis.txt").read_text() == "four years of work"
+
+
+# 6. a corrupt newest checkpoint ---------------------------------------------------------
+
+def _drop_state_metadata(step: Path) -> None:
+    (step / "state" / "_METADATA").unlink()
+
+
+def _truncate_largest_array(step: Path) -> None:
+    biggest = max((f for f in (step / "state").rglob("*") if f.is_file()),
+                  key=lambda f: f.stat().st_size)
+    data = biggest.read_bytes()
+    biggest.write_bytes(data[: len(data) // 2])
+
+
+def _garble_meta(step: Path) -> None:
+    (step / "meta" / "metadata").write_text("{garbled")
+
+
+@pytest.mark.parametrize("damage", [_drop_state_metadata, _truncate_largest_array,
+                                    _garble_meta])
+def test_a_corrupt_newest_checkpoint_is_named_set_aside_and_resume_falls_back(
+        tmp_path, tiny_dir, half_run, full_run, damage, capsys):
+    run = copy_of(half_run, tmp_path / "run")
+    newest = run / "checkpoints" / str(2 * CHUNK)
+    damage(newest)
+    broken = snapshot(newest)
+    capsys.readouterr()
+    out = loop.train(cfg_of(tiny_dir, run), resume=True, progress=False)
+    err = capsys.readouterr().err
+    assert f"checkpoint {newest}" in err and f"resumed from step {CHUNK}" in err
+    aside = run / "broken_checkpoints" / str(2 * CHUNK)
+    assert snapshot(aside) == broken                        # kept, byte for byte
+    for a, b in zip(leaves(full_run[1]), leaves(out["runner"])):
+        np.testing.assert_array_equal(a, b)
+    assert records(run) == records(full_run[0])
+
+
+def test_no_readable_checkpoint_is_an_error_that_moves_nothing(tmp_path, tiny_dir, half_run,
+                                                               cli_error):
+    run = copy_of(half_run, tmp_path / "run")
+    for step in (run / "checkpoints").iterdir():
+        _garble_meta(step)
+    before = snapshot(run)
+    msg = cli_error(train_cli.main, ["--run-dir", run, "--resume", "--quiet", "--no-test"])
+    assert f"checkpoint {run / 'checkpoints' / str(2 * CHUNK)} cannot be read" in msg
+    assert snapshot(run) == before
+
+
+# 9. no duplicated metrics records after a resume ----------------------------------------
+
+def test_resume_rewrites_no_metrics_record_twice(tmp_path, tiny_dir, full_run):
+    run = tmp_path / "run"
+    cfg = cfg_of(tiny_dir, run, checkpoint_every_chunks=2)
+    loop.train(cfg, progress=False, stop_after_chunks=3)        # killed after chunk 3
+    assert ("train", 3 * CHUNK) in records(run)                 # logged, not checkpointed
+    loop.train(cfg, resume=True, progress=False)
+    assert records(run) == records(full_run[0])
+
+
+# 10. user errors are one line with exit code 2 -----------------------------------------
+
+def test_user_errors_of_train_are_one_line(tmp_path, tiny_dir, cli_error):
+    msg = cli_error(train_cli.main, argv_of(tmp_path / "no-scenes", tmp_path / "r1"))
+    assert "no-scenes" in msg and "does not exist" in msg
+    msg = cli_error(train_cli.main, ["--scene-preset", "huge", "--run-dir", tmp_path / "r2"])
+    assert "huge" in msg
+    assert not (tmp_path / "r1").exists() and not (tmp_path / "r2").exists()
+
+
+def test_a_non_finite_loss_is_a_one_line_error_that_keeps_the_checkpoints(
+        tmp_path, tiny_dir, monkeypatch, cli_error):
+    real = loop.make_train_chunk
+
+    def poisoned(cfg, model, optimizer):
+        chunk_fn, calls = real(cfg, model, optimizer), [0]
+
+        def wrapped(runner, scenes):
+            calls[0] += 1
+            runner, metrics = chunk_fn(runner, scenes)
+            return runner, dict(metrics, loss_finite=np.bool_(calls[0] < 3))
+        return wrapped
+
+    monkeypatch.setattr(loop, "make_train_chunk", poisoned)
+    loop.cached_train_chunk.cache_clear()
+    try:
+        msg = cli_error(train_cli.main, argv_of(tiny_dir, tmp_path / "run"))
+    finally:
+        loop.cached_train_chunk.cache_clear()
+    assert "non-finite loss in chunk 3" in msg
+    assert sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir()) == \
+        [str(CHUNK), str(2 * CHUNK)]
+    assert not (tmp_path / "run" / LOCK_FILE).exists()
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        run_cli(train_cli.main, ["--run-dir", str(tmp_path / "none"), "--resume", "--debug"])
