@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orgnav_jax import evaluate
+from orgnav_jax import api
 from orgnav_jax.training.run_dir import RunLock, is_run_dir
 from orgnav_jax.training.config import TABLE_ROWS, add_config_arguments, get_config, \
     overrides_from_args
@@ -52,7 +52,6 @@ TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": 
 def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -> dict:
     """BASE+VARIANT: train (or reuse) the base row and its TPN, evaluate the variant."""
     from orgnav_jax.tpn.config import get_tpn_config
-    from orgnav_jax.tpn.stage2 import train_tpn
     base, variant = row.split("+")
     variant, _, lr = variant.partition("@")
     run_one(base, seed, out, overrides)
@@ -63,24 +62,21 @@ def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -
     cfg = get_tpn_config(**tpn_fields, base_dir=str(tpn_dir.parent), seed=seed,
                          run_dir=str(tpn_dir))
     # trains, continues an interrupted run, or (finished) only reloads it
-    train_tpn(cfg, resume=is_run_dir(tpn_dir), progress=sys.stderr.isatty())
-    flags = [f"--{k.replace('_', '-')}={v}" for k, v in TPN_VARIANTS[variant].items()]
-    flags += [f"--tpn-lr={float(lr)}"] if lr else []
-    return evaluate.main(["--tpn", str(tpn_dir), "--split", "test", "--out", str(results),
-                          "--quiet"] + flags)["overall"]
+    api.train_tpn(cfg, resume=is_run_dir(tpn_dir), progress=sys.stderr.isatty())
+    test_time = dict(TPN_VARIANTS[variant], **({"tpn_lr": float(lr)} if lr else {}))
+    return api.evaluate_run(tpn_dir, "test", out=results, progress=False,
+                            **test_time)["overall"]
 
 
 def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
     """Train (or resume, or skip) one row and seed -> its test metrics."""
-    from orgnav_jax.training.loop import train
     run_dir = out / "runs" / f"{row}-s{seed}"
     results = run_dir / "test_results.json"
     if results.exists():
         return json.loads(results.read_text())["overall"]
     cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir)})
-    train(cfg, resume=is_run_dir(run_dir), progress=sys.stderr.isatty())
-    return evaluate.main(["--checkpoint", str(run_dir), "--split", "test", "--out",
-                          str(results), "--quiet"])["overall"]
+    api.train(cfg, resume=is_run_dir(run_dir), progress=sys.stderr.isatty())
+    return api.test_run(run_dir, progress=False)["overall"]
 
 
 def row_name(text: str) -> str:

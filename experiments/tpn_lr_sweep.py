@@ -14,7 +14,7 @@ import argparse
 import json
 from pathlib import Path
 
-from orgnav_jax import evaluate
+from orgnav_jax import api
 
 
 def main() -> None:
@@ -27,9 +27,8 @@ def main() -> None:
     args = ap.parse_args()
     out, results = Path(args.out), {}
     for lr in args.lrs:
-        res = evaluate.main(["--tpn", args.tpn_dir, "--split", args.split, "--quiet",
-                             "--tpn-lr", str(lr), "--scope", args.scope,
-                             "--out", str(out.with_suffix(f".lr{lr:g}.json"))])
+        res = api.evaluate_run(args.tpn_dir, args.split, tpn_lr=lr, scope=args.scope,
+                               out=out.with_suffix(f".lr{lr:g}.json"), progress=False)
         results[f"{lr:g}"] = res["overall"]
         out.write_text(json.dumps({"tpn_dir": args.tpn_dir, "split": args.split,
                                    "scope": args.scope, "results": results}, indent=1))

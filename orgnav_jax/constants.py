@@ -87,3 +87,6 @@ def split_index(name: str) -> int:
         return SPLIT_INDEX[name]
     except KeyError:
         raise ValueError(f"unknown split {name!r}: expected one of {list(SPLITS)}") from None
+
+# Evaluation episodes per room type in the test protocol (the paper's 250 per room type).
+EPISODES_PER_ROOM_TYPE = 250

@@ -20,13 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from orgnav_jax.constants import CATEGORIES, ROOM_TYPES, category_index
+from orgnav_jax.constants import (  # noqa: F401  (EPISODES_PER_ROOM_TYPE re-exported)
+    CATEGORIES, EPISODES_PER_ROOM_TYPE, ROOM_TYPES, category_index,
+)
 from orgnav_jax.safe_write import write_text_atomic
 from orgnav_jax.scenes.keys import key_index, state_key
 from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet
 
 FORMAT = "orgnav_jax.episodes/1"
-EPISODES_PER_ROOM_TYPE = 250
 
 
 @dataclasses.dataclass(frozen=True)

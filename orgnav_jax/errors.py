@@ -52,3 +52,13 @@ def run_cli(main: Callable[[list[str]], object], argv: Sequence[str] | None = No
         print("interrupted", file=sys.stderr)
         return 130
     return out if isinstance(out, int) and not isinstance(out, bool) else 0
+
+
+def choose(options: dict, value, what: str):
+    """options[value], or a ValueError naming `what` and the valid choices: the one way
+    this package dispatches on a string mode."""
+    try:
+        return options[value]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown {what} {value!r}: expected one of "
+                         f"{sorted(map(str, options))}") from None

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from orgnav_jax import env
+from orgnav_jax.compile_cache import compiled_once
 from orgnav_jax.constants import CATEGORIES, DONE, NUM_ACTIONS, ROOM_TYPES
 from orgnav_jax.episodes import EpisodeSet
 from orgnav_jax.scenes.sceneset import SceneSet
@@ -54,7 +55,7 @@ class Policy:
     act: Callable[..., tuple[jax.Array, Any]]
 
 
-@functools.cache
+@compiled_once
 def random_policy() -> Policy:
     """Uniform over the 6 actions (Done included), as the paper's Random row."""
     def act(_, carry, obs, key, scenes, fresh):
@@ -62,7 +63,7 @@ def random_policy() -> Policy:
     return Policy("Random", lambda batch, _: (), act)
 
 
-@functools.cache
+@compiled_once
 def expert_policy() -> Policy:
     """The shortest-path expert: scenes.expert_action for the observed target."""
     def act(_, carry, obs, key, scenes, fresh):

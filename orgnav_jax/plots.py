@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from orgnav_jax.constants import CATEGORIES, CATEGORY_INDEX, TARGETS
+from orgnav_jax.errors import run_cli
 from orgnav_jax.scenes.catalog import ANCHORS
 
 

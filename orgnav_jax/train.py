@@ -25,11 +25,11 @@ import json
 import sys
 from pathlib import Path
 
-from orgnav_jax import evaluate
+from orgnav_jax import api, evaluate
 from orgnav_jax.errors import UserError, run_cli
-from orgnav_jax.training.run_dir import is_run_dir
 from orgnav_jax.training.config import (
     PRESETS, add_config_arguments, get_config, load_config, overrides_from_args)
+from orgnav_jax.training.run_dir import is_run_dir
 
 
 def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
@@ -90,37 +90,34 @@ def main_tpn(argv: list[str]) -> dict:
             raise UserError("--stage tpn needs --base RUN_DIR (a finished training run)")
         load_config(fields["base_dir"])      # a training run (clear errors otherwise)
         cfg = get_tpn_config(**fields)
-    from orgnav_jax.tpn.stage2 import train_tpn
+    return run_tpn_stage(cfg, args.resume, args)
+
+
+def announce(cfg, header: str) -> None:
+    """The budget notice (if the budget rounds) and the run's one-line header."""
     if cfg.budget_notice():
         print(cfg.budget_notice(), file=sys.stderr, flush=True)
-    print(f"TPN run {cfg.run_dir}: base {cfg.base_dir}, {cfg.num_envs} episodes x "
-          f"{cfg.max_steps} steps per update, {cfg.total_episodes:,} episodes, deadlock "
-          f"detector {cfg.deadlock}", flush=True)
-    summary = train_tpn(cfg, resume=args.resume, progress=not args.quiet)
+    print(header, flush=True)
+
+
+def finish(summary: dict, run_dir: str, args) -> dict:
+    """Print the summary; unless --no-test, evaluate the run on the test split."""
     summary.pop("runner")
     print(json.dumps(summary, default=str))
     if not args.no_test:
-        out = Path(cfg.run_dir) / "test_results.json"
-        argv = ["--tpn", cfg.run_dir, "--split", "test", "--out", str(out)]
-        summary["test"] = evaluate.main(argv + (["--quiet"] if args.quiet else []))["overall"]
+        result = api.test_run(run_dir, progress=not args.quiet)
+        evaluate.print_results(result["policy"], result)
+        print(f"\nresults: {result['out']}")
+        summary["test"] = result["overall"]
     return summary
 
 
-def test_best(run_dir: str, quiet: bool = False) -> dict:
-    """Evaluate the run's best-on-val checkpoint on the test split; write test_results.json."""
-    out = Path(run_dir) / "test_results.json"
-    argv = ["--checkpoint", run_dir, "--split", "test", "--out", str(out)]
-    return evaluate.main(argv + (["--quiet"] if quiet else []))
-
-
-def pipeline_tpn_argv(args, run_dir: str, default_lr: float) -> list[str]:
-    """Stage-2 options of a both-stages preset."""
-    argv = ["--base", run_dir, "--tpn-lr", str(args.tpn_lr or default_lr)]
-    argv += ["--total-episodes", str(args.tpn_episodes)] if args.tpn_episodes else []
-    argv += ["--quiet"] if args.quiet else []
-    argv += ["--no-test"] if args.no_test else []
-    argv += ["--resume"] if args.resume and is_run_dir(Path(run_dir) / "tpn") else []
-    return argv
+def run_tpn_stage(cfg, resume: bool, args) -> dict:
+    announce(cfg, f"TPN run {cfg.run_dir}: base {cfg.base_dir}, {cfg.num_envs} episodes x "
+                  f"{cfg.max_steps} steps per update, {cfg.total_episodes:,} episodes, "
+                  f"deadlock detector {cfg.deadlock}")
+    return finish(api.train_tpn(cfg, resume=resume, progress=not args.quiet), cfg.run_dir,
+                  args)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -138,23 +135,22 @@ def main(argv: list[str] | None = None) -> dict:
     if args.resume and "run_dir" in overrides and not (set(overrides) - RESUME_OPTIONS):
         # resume with the saved config, in the directory given (a copied or moved run);
         # the budget may be extended and the scenes moved
-        cfg = dataclasses.replace(load_config(overrides["run_dir"]), **overrides)
+        cfg = api.resume_config(**overrides)
     else:
         if pipeline:
             overrides.setdefault("run_dir", f"runs/{args.preset}-small")
         cfg = get_config(pipeline[0] if pipeline else args.preset, **overrides)
-    from orgnav_jax.training.loop import train     # imports JAX; after argument checks
-    if cfg.budget_notice():
-        print(cfg.budget_notice(), file=sys.stderr, flush=True)
-    print(f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {cfg.num_envs} envs x "
-          f"{cfg.rollout_len} steps, {cfg.total_env_steps:,} env steps", flush=True)
-    summary = train(cfg, resume=args.resume, progress=not args.quiet)
-    summary.pop("runner")
-    print(json.dumps(summary, default=str))
-    if not args.no_test:
-        summary["test"] = test_best(cfg.run_dir, args.quiet)["overall"]
+    announce(cfg, f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {cfg.num_envs} envs "
+                  f"x {cfg.rollout_len} steps, {cfg.total_env_steps:,} env steps")
+    summary = finish(api.train(cfg, resume=args.resume, progress=not args.quiet),
+                     cfg.run_dir, args)
     if pipeline:
-        summary["tpn"] = main_tpn(pipeline_tpn_argv(args, cfg.run_dir, pipeline[1]))
+        from orgnav_jax.tpn.config import get_tpn_config
+        fields = {"tpn_lr": args.tpn_lr or pipeline[1]}
+        fields.update({"total_episodes": args.tpn_episodes} if args.tpn_episodes else {})
+        tpn_cfg = get_tpn_config(base_dir=cfg.run_dir, **fields)
+        summary["tpn"] = run_tpn_stage(
+            tpn_cfg, args.resume and is_run_dir(tpn_cfg.run_dir), args)
     return summary
 
 

@@ -12,15 +12,20 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from typing import Literal, get_args
 
+from orgnav_jax.compile_cache import keep_only
 from orgnav_jax.training.config import (
     COUNT, CONFIG_VERSION, INT32_MAX, POSITIVE, SEED, Range, _parse_bool, check_ranges,
     check_types, read_config)
 
-SCOPES = ("actor", "trunk", "all")          # parameters a test-time update changes
-DETECTORS = ("visited", "cosine")           # external memory: visited set or feature match
-WHEN = ("deadlock", "all")                  # which steps update (Table 2: "all")
-TARGETS = ("tpn", "random")                 # update target (Table 2: "random")
+Scope = Literal["actor", "trunk", "all"]     # parameters a test-time update changes
+Detector = Literal["visited", "cosine"]      # external memory: visited set or feature match
+When = Literal["deadlock", "all"]            # which steps update (Table 2: "all")
+Target = Literal["tpn", "random"]            # update target (Table 2: "random")
+Act = Literal["sample", "greedy"]            # the frozen base's actions in stage 2
+SCOPES, DETECTORS, WHEN, TARGETS, ACTS = (get_args(t) for t in (Scope, Detector, When,
+                                                                 Target, Act))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,11 +36,11 @@ class TPNConfig:
     mlp: int = 256
     top_k: int = 10
     # the external memory (deadlock detection)
-    deadlock: str = "visited"         # visited (revisited state or failed move) | cosine
+    deadlock: Detector = "visited"         # visited (revisited state or failed move) | cosine
     cosine_threshold: float = 0.99    # cosine: global feature match with an earlier step
     signature_dim: int = 64           # cosine: random projection width of the global map
     # stage 2: the frozen base acts in num_envs training episodes per update
-    act: str = "sample"               # sample | greedy (the base's actions in stage 2)
+    act: Act = "sample"               # sample | greedy (the base's actions in stage 2)
     max_steps: int = 100              # stage-2 episode cap (test time: the eval caps)
     num_envs: int = 64
     lr: float = 3e-4
@@ -50,9 +55,9 @@ class TPNConfig:
     run_dir: str = ""                 # default: <base_dir>/tpn
     # test time (evaluation with --tpn)
     tpn_lr: float = 1e-4              # one SGD step per update step
-    scope: str = "all"                # all (the release's) | trunk (above the encoder) | actor
-    when: str = "deadlock"
-    target: str = "tpn"
+    scope: Scope = "all"                # all (the release's) | trunk (above the encoder) | actor
+    when: When = "deadlock"
+    target: Target = "tpn"
     reset_every: int = 50             # fast weights back to the trained ones every N steps
                                       # of an episode (the release's 50); 0: at its start only
     tpn_train_mode: bool = False      # the release's confound: dropout active with TPN
@@ -86,7 +91,7 @@ class TPNConfig:
         the expected range (FIELD_RANGES)."""
         check_types(self, "TPN config field")
         for name, allowed in (("scope", SCOPES), ("deadlock", DETECTORS), ("when", WHEN),
-                              ("target", TARGETS), ("act", ("sample", "greedy"))):
+                              ("target", TARGETS), ("act", ACTS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"TPN config field {name!r}: {getattr(self, name)!r}, "
                                  f"expected one of {list(allowed)}")
@@ -96,7 +101,7 @@ class TPNConfig:
     def test_time(self) -> "TPNConfig":
         """Only the fields the test-time policy reads (others default), so that runs which
         differ in directories, seeds or stage-2 budget share one compiled evaluation."""
-        return TPNConfig(**{f: getattr(self, f) for f in TEST_TIME_FIELDS + ("signature_dim",)})
+        return keep_only(self, TEST_TIME_FIELDS + ("signature_dim",))
 
     def to_json(self) -> str:
         return json.dumps({"version": CONFIG_VERSION, "stage": "tpn",

@@ -26,6 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from orgnav_jax.errors import choose
+
 
 @functools.lru_cache(maxsize=8)
 def signature_projection(in_dim: int, dim: int = 64, seed: int = 0) -> np.ndarray:
@@ -80,15 +82,18 @@ def vision_deadlock(mem: VisionMemory, sig: jax.Array, threshold: float = 0.99):
 
 def detector_init(cfg, batch: int, episode_cap: int):
     """-> the detector's per-episode state (None for "visited")."""
-    if cfg.deadlock == "visited":
-        return None
-    return vision_memory_init(batch, episode_cap + 1, cfg.signature_dim)
+    return choose({"visited": lambda: None,
+                   "cosine": lambda: vision_memory_init(batch, episode_cap + 1,
+                                                        cfg.signature_dim)},
+                  cfg.deadlock, "deadlock detector")()
 
 
 def detect(cfg, vision, env_deadlock, glob, fresh):
     """env_deadlock (B,) bool, glob (B, 7, 7, G), fresh (B,) -> (deadlock (B,), vision)."""
-    if cfg.deadlock == "visited":
-        return env_deadlock, vision
-    projection = signature_projection(glob[0].size, cfg.signature_dim)
-    vision = vision_memory_reset(vision, fresh)
-    return vision_deadlock(vision, global_signature(glob, projection), cfg.cosine_threshold)
+    def cosine():
+        projection = signature_projection(glob[0].size, cfg.signature_dim)
+        memory = vision_memory_reset(vision, fresh)
+        return vision_deadlock(memory, global_signature(glob, projection),
+                               cfg.cosine_threshold)
+    return choose({"visited": lambda: (env_deadlock, vision), "cosine": cosine},
+                  cfg.deadlock, "deadlock detector")()

@@ -28,12 +28,12 @@ it). Only `per_env` is differentiated and re-run after an update.
 
 from __future__ import annotations
 
-import functools
 
 import jax
 import jax.numpy as jnp
 from flax import traverse_util
 
+from orgnav_jax.compile_cache import compiled_once
 from orgnav_jax.evaluation import where_rows
 
 SCOPE_PATHS = {"actor": ("params", "trunk", "actor"),     # the policy head
@@ -68,7 +68,7 @@ def _unbatch(tree):
     return jax.tree_util.tree_map(lambda x: x[0], tree)
 
 
-@functools.cache
+@compiled_once
 def split_step(model, scope: str):
     """-> (shared, per_env) for a NavModel and a scope (see module docstring).
 

@@ -27,7 +27,6 @@ the update and the action; without it the evaluation is deterministic.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from pathlib import Path
 from typing import Any
 
@@ -35,8 +34,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from orgnav_jax.compile_cache import compiled_once
 from orgnav_jax.constants import DONE, NUM_ACTIONS
 from orgnav_jax.env import EnvParams
+from orgnav_jax.errors import choose
 from orgnav_jax.evaluation import Policy
 from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
 from orgnav_jax.models.tpn import TPN, memory_init, memory_record, memory_reset
@@ -82,7 +83,7 @@ def fast_weights(model, cfg: TPNConfig, base_params, impl: str = "auto"):
     return LowRankFastWeights(model, make_plan(base_params, cfg.scope, update_slots(cfg)))
 
 
-@functools.cache
+@compiled_once
 def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN", dropout: float = 0.0,
                impl: str = "auto") -> Policy:
     """policy_params = {"base": navigation variables, "tpn": TPN variables}. `dropout`:
@@ -111,14 +112,15 @@ def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN", dropout: floa
                                               memory_reset(carry.memory, fresh),
                                               method=tpn.step_logits)
             deadlock, vision = detect(cfg, carry.vision, obs.deadlock, inputs.glob, fresh)
-            update = deadlock if cfg.when == "deadlock" else jnp.ones_like(deadlock)
+            update = choose({"deadlock": deadlock, "all": jnp.ones_like(deadlock)},
+                            cfg.when, "TPN update steps (when)")
             # an episode that said Done is over (the evaluation scan keeps stepping its
             # frozen last observation): no more updates, so fewer slots to read
             update = update & (obs.prev_action[:, DONE] == 0)
-            if cfg.target == "tpn":
-                target = jnp.argmax(tpn_logits, -1)
-            else:
-                target = jax.random.randint(key, fresh.shape, 0, NUM_ACTIONS)
+            target = choose({
+                "tpn": lambda: jnp.argmax(tpn_logits, -1),
+                "random": lambda: jax.random.randint(key, fresh.shape, 0, NUM_ACTIONS)},
+                cfg.target, "TPN update target")()
             return target, update, (update, r, memory, vision)
 
         # the model with the episode's fast weights; updating rows take one SGD step and

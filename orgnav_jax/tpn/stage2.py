@@ -13,9 +13,6 @@ collected data do not depend on the TPN's parameters.
 
 from __future__ import annotations
 
-import math
-import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -23,18 +20,17 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
-from tqdm import tqdm
 
 from orgnav_jax import env
+from orgnav_jax.errors import choose
 from orgnav_jax.evaluation import where_rows
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
 from orgnav_jax.tpn.policy import build_tpn, init_tpn_params
-from orgnav_jax.training.checkpoints import RunCheckpoints
+from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
-from orgnav_jax.training.loop import NonFiniteLoss
-from orgnav_jax.training.run_dir import MetricsLog, open_run_dir, write_config
+from orgnav_jax.training.run_dir import open_run_dir
 
 
 @struct.dataclass
@@ -71,8 +67,9 @@ def collect(model, base_params, cfg: TPNConfig, scenes, key, num: int) -> Episod
         obs = v_observe(state, scenes)
         inputs = model_inputs(scenes, obs)
         logits, _, lstm, h = model.apply(base_params, inputs, lstm)
-        action = (jax.random.categorical(k, logits) if cfg.act == "sample"
-                  else jnp.argmax(logits, -1)).astype(jnp.int32)
+        action = choose({"sample": lambda: jax.random.categorical(k, logits),
+                         "greedy": lambda: jnp.argmax(logits, -1)},
+                        cfg.act, "stage-2 action rule (act)")().astype(jnp.int32)
         deadlock, vision = detect(cfg, vision, obs.deadlock, inputs.glob, fresh)
         expert = scenes.expert_action[state.scene, state.state, state.target]
         _, state2, _, done, info = v_step(state, action, scenes, params)
@@ -159,48 +156,11 @@ def _train_tpn(cfg: TPNConfig, run_dir: Path, model, base_params, nav_cfg, scene
         model, base_params, cfg, val_scenes, jax.random.PRNGKey(2 ** 20),
         4 * cfg.eval_episodes_per_room_type)
     val_fn = jax.jit(lambda p: tpn_loss(p, tpn, val_batch)[1])
-    ckpt = RunCheckpoints(run_dir, cfg.keep_checkpoints)
-    best, chunk = {"accuracy": -1.0}, 0
-    if resume and ckpt.latest_step() is not None:
-        runner, meta = ckpt.restore(runner, fallback=True)
-        chunk, best = meta["chunk"], meta["best"]
-    num_chunks = math.ceil(cfg.num_updates / cfg.updates_per_chunk)
-    episodes_per_chunk = cfg.updates_per_chunk * cfg.num_envs
-    write_config(run_dir, cfg)
-    log = MetricsLog(run_dir, step_name="episodes",
-                     resume_from=chunk * episodes_per_chunk if resume else None)
-    if resume:
-        ckpt.drop_best_after(chunk * episodes_per_chunk)
-    bar = tqdm(total=num_chunks * episodes_per_chunk, initial=chunk * episodes_per_chunk,
-               unit="ep", desc="train TPN", disable=not progress, file=sys.stderr)
-    t_start = time.perf_counter()
-    while chunk < num_chunks:
-        t0 = time.perf_counter()
-        new_runner, metrics = chunk_fn(runner, base_params, train_scenes)
-        metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
-        if not metrics.pop("loss_finite"):
-            bar.close()
-            log.close()
-            raise NonFiniteLoss(f"non-finite TPN loss in chunk {chunk + 1}; the run stopped "
-                                f"and the last good checkpoint in {run_dir} is kept")
-        runner, chunk = new_runner, chunk + 1
-        episodes = chunk * episodes_per_chunk
-        metrics["episodes_per_s"] = episodes_per_chunk / (time.perf_counter() - t0)
-        log.write("train", episodes, metrics)
-        bar.update(episodes_per_chunk)
-        bar.set_postfix(acc=f"{metrics['accuracy']:.3f}", best_val=f"{best['accuracy']:.3f}")
-        last = chunk == num_chunks
-        if chunk % cfg.eval_every_chunks == 0 or last:
-            val = {k: float(v) for k, v in jax.device_get(val_fn(runner.params)).items()}
-            log.write("val", episodes, val)
-            if val["accuracy"] > best["accuracy"]:
-                best = {"accuracy": val["accuracy"], "ce": val["ce"], "episodes": episodes}
-                ckpt.save(episodes, runner, {"chunk": chunk, "val": val}, best=True)
-        if chunk % cfg.checkpoint_every_chunks == 0 or last:
-            ckpt.save(episodes, runner, {"chunk": chunk, "best": best})
-        if stop_after_chunks is not None and chunk >= stop_after_chunks and not last:
-            break
-    bar.close()
-    log.close()
-    return {"run_dir": str(run_dir), "episodes": chunk * episodes_per_chunk, "chunks": chunk,
-            "best_val": best, "wall_s": time.perf_counter() - t_start, "runner": runner}
+    floats = lambda m: {k: float(v) for k, v in jax.device_get(m).items()}
+    stage = Stage(
+        name="train TPN", unit="ep", step_name="episodes", rate_key="episodes_per_s",
+        per_chunk=cfg.updates_per_chunk * cfg.num_envs, total=cfg.num_updates * cfg.num_envs,
+        chunk=lambda runner: chunk_fn(runner, base_params, train_scenes), summarize=floats,
+        validate=lambda runner: floats(val_fn(runner.params)),
+        score_keys=("accuracy",), best_keys=("accuracy", "ce"), progress_keys=("accuracy",))
+    return run_stage(stage, runner, cfg, run_dir, resume, progress, stop_after_chunks)

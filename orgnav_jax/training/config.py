@@ -13,16 +13,22 @@ import json
 import math
 import numbers
 from pathlib import Path
+from typing import Literal, get_args
 
 CONFIG_VERSION = 3   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step
 READABLE_VERSIONS = (2, 3)   # configs and checkpoints this version reads (same parameters)
 # Fields a version-2 config lacks, with the values those runs were trained with.
 V2_DEFAULTS = {"il_norm": "masked_mean", "il_step": "state"}
 
-IL_MODES = ("none", "deadlock", "all", "failed")   # which steps get the imitation loss
-IL_STEPS = ("cause", "state")        # supervise the action that led into a deadlock, or
+# String modes are Literal types; their values (typing.get_args) are what validate
+# accepts, and every dispatch on them is a dict that raises on other values
+# (errors.choose).
+ILMode = Literal["none", "deadlock", "all", "failed"]   # which steps get the imitation loss
+ILStep = Literal["cause", "state"]   # supervise the action that led into a deadlock, or
                                      # the action taken at the deadlock state
-IL_NORMS = ("per_step", "masked_mean")   # sum / (T*N) (as the release), or mean over IL steps
+ILNorm = Literal["per_step", "masked_mean"]   # sum / (T*N) (as the release), or mean over
+                                              # the IL steps
+IL_MODES, IL_STEPS, IL_NORMS = get_args(ILMode), get_args(ILStep), get_args(ILNorm)
 
 
 INT32_MAX = 2 ** 31 - 1
@@ -113,10 +119,10 @@ class TrainConfig:
     lstm_layers: int = 1
     dropout: float = 0.0              # on the global map's 1x1 layer (release: 0.25)
     # imitation (trial-driven IL): none | deadlock | all | failed (see IL_MODES, IL_STEPS)
-    il: str = "none"
+    il: ILMode = "none"
     il_weight: float = 1.0
-    il_step: str = "state"
-    il_norm: str = "per_step"
+    il_step: ILStep = "state"
+    il_norm: ILNorm = "per_step"
     # environment
     success_reward: float = 5.0
     step_penalty: float = -0.01

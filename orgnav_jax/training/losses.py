@@ -8,6 +8,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from orgnav_jax.errors import choose
 from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
 
 
@@ -27,31 +28,21 @@ def gae(reward, value, done, last_value, gamma: float, lam: float):
     return adv, adv + value
 
 
-# (il mode, il_step) -> the (T, N) bool flags of the steps that get the imitation loss.
-# "state": the step taken at a deadlock state (the state was visited before, or the
-# previous action failed); "cause": the step whose action failed, led into a visited
-# state or was Done (the release's choice). Either way the label is the expert's action
-# at the state where the supervised action was chosen.
-_IL_FLAGS = {
-    ("deadlock", "state"): lambda traj: traj.obs.deadlock,
-    ("deadlock", "cause"): lambda traj: traj.caused,
-    ("failed", "state"): lambda traj: traj.last_failed,
-    ("failed", "cause"): lambda traj: traj.failed,
-}
-
-
 def il_mask(mode: str, step: str, traj):
     """Steps of a Trajectory that get the imitation loss -> (T, N) float32.
-    mode: none | deadlock | all | failed; step: cause | state (see _IL_FLAGS)."""
-    shape = traj.action.shape
-    if mode == "none":
-        return jnp.zeros(shape, jnp.float32)
-    if mode == "all":
-        return jnp.ones(shape, jnp.float32)
-    if (mode, step) not in _IL_FLAGS:
-        raise ValueError(f"unknown IL mode {mode!r} / step {step!r}: modes none, all, "
-                         f"deadlock, failed; steps cause, state")
-    return _IL_FLAGS[mode, step](traj).astype(jnp.float32)
+
+    mode: none | deadlock | all | failed. step, for deadlock and failed: "state" is the
+    step taken at a deadlock state (the state was visited before, or the previous action
+    failed); "cause" is the step whose action failed, led into a visited state or was
+    Done (the release's choice). Either way the label is the expert's action at the
+    state where the supervised action was chosen."""
+    ones = jnp.ones(traj.action.shape, bool)
+    by_step = {"deadlock": {"state": traj.obs.deadlock, "cause": traj.caused},
+               "failed": {"state": traj.last_failed, "cause": traj.failed}}
+    flags = choose({"none": ~ones, "all": ones,
+                    **{m: choose(s, step, "IL step") for m, s in by_step.items()}},
+                   mode, "IL mode")
+    return flags.astype(jnp.float32)
 
 
 def imitation_loss(logits, expert_action, mask, norm: str = "masked_mean"):
@@ -63,12 +54,8 @@ def imitation_loss(logits, expert_action, mask, norm: str = "masked_mean"):
     mask = mask * (expert_action >= 0)
     logp = jax.nn.log_softmax(logits)
     ce = -jnp.take_along_axis(logp, jnp.maximum(expert_action, 0)[..., None], -1)[..., 0]
-    if norm == "masked_mean":
-        denom = jnp.maximum(mask.sum(), 1.0)
-    elif norm == "per_step":
-        denom = mask.size
-    else:
-        raise ValueError(f"unknown IL normalization {norm!r}: masked_mean or per_step")
+    denom = choose({"masked_mean": lambda: jnp.maximum(mask.sum(), 1.0),
+                    "per_step": lambda: mask.size}, norm, "IL normalization")()
     return (ce * mask).sum() / denom, mask.sum()
 
 

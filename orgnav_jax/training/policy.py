@@ -2,19 +2,19 @@
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 
+from orgnav_jax.compile_cache import compiled_once
 from orgnav_jax.evaluation import Policy
 from orgnav_jax.models import build_model, init_params, model_inputs, reset_carry
 from orgnav_jax.training.checkpoints import RunCheckpoints
 from orgnav_jax.training.config import TrainConfig, load_config
 
 
-@functools.cache
+@compiled_once
 def model_policy(model, name: str = "Model") -> Policy:
     """Greedy (argmax) actions of a NavModel; the LSTM carry resets at episode starts.
     policy_params are the model's variables."""

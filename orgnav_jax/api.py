@@ -1,0 +1,205 @@
+"""The library API: what the command lines, experiments and notebooks call.
+
+    from orgnav_jax import api
+    result = api.evaluate_policy("expert", split="val", scene_preset="tiny")
+    summary = api.train(get_config("baseline"))               # stage 1
+    summary = api.train_tpn(get_tpn_config(base_dir=RUN))      # stage 2
+    result = api.evaluate_run(RUN, split="test")               # stage-1 or TPN run
+    summary = api.train_both(get_config("org_il"), tpn_lr=1e-3)
+
+Every function returns its results and raises on bad input (UserError, ValueError,
+OSError, with messages naming the file or field); none prints results or exits. The
+CLIs (`python -m orgnav_jax.train`, `python -m orgnav_jax.evaluate`) turn the errors
+into one-line messages with exit code 2 (errors.run_cli).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+from orgnav_jax.constants import EPISODES_PER_ROOM_TYPE
+from orgnav_jax.errors import UserError
+from orgnav_jax.safe_write import check_output_file, write_text_atomic
+from orgnav_jax.training.config import TrainConfig, load_config
+from orgnav_jax.training.run_dir import is_run_dir
+
+RESULTS = "an evaluation results JSON of orgnav_jax.evaluate"
+EPISODE_FILE = "an episode file of orgnav_jax.evaluate"
+
+
+@dataclasses.dataclass
+class LoadedPolicy:
+    """A policy with its parameters and the scenes it belongs to."""
+    policy: object               # evaluation.Policy
+    params: object               # its parameters (None for random / expert)
+    name: str                    # for file names and tables
+    scene_preset: str = "small"
+    scenes_dir: str | None = None
+    scene_seed: int = 0
+    batch_size: int = 1000       # episodes per jitted batch
+
+
+def load_policy(policy: str | None = None, run_dir: str | None = None,
+                tpn_dir: str | None = None, **test_time) -> LoadedPolicy:
+    """One of: a named policy ('random', 'expert'), a training run's best-on-val model
+    (run_dir), or a stage-2 run (tpn_dir: its base with TPN's test-time updates;
+    test_time overrides tpn.config.TEST_TIME_FIELDS)."""
+    from orgnav_jax import evaluation
+    if sum(x is not None for x in (policy, run_dir, tpn_dir)) > 1:
+        raise UserError("give one of a policy name, a run directory or a TPN run directory")
+    if test_time and tpn_dir is None:
+        from orgnav_jax.tpn.config import TEST_TIME_FIELDS
+        options = ", ".join("--" + f.replace("_", "-") for f in TEST_TIME_FIELDS)
+        raise UserError(f"test-time TPN options ({options}) need --tpn TPN_RUN_DIR")
+    if tpn_dir is not None:
+        from orgnav_jax.tpn.policy import default_batch_size, load_tpn_policy
+        pol, params, run_cfg, tpn_cfg = load_tpn_policy(tpn_dir, **test_time)
+        return LoadedPolicy(pol, params, f"{Path(tpn_cfg.base_dir).name}-{pol.name}",
+                            run_cfg.scene_preset, run_cfg.scenes_dir, run_cfg.scene_seed,
+                            default_batch_size(params["base"], tpn_cfg))
+    if run_dir is not None:
+        from orgnav_jax.training.policy import load_run_policy
+        pol, params, run_cfg = load_run_policy(run_dir)
+        return LoadedPolicy(pol, params, Path(run_dir).name, run_cfg.scene_preset,
+                            run_cfg.scenes_dir, run_cfg.scene_seed)
+    policies = {"random": evaluation.random_policy, "expert": evaluation.expert_policy}
+    name = policy or "random"
+    if name not in policies:
+        raise UserError(f"unknown policy {name!r}: expected one of {sorted(policies)}")
+    return LoadedPolicy(policies[name](), None, name)
+
+
+def is_results_json(path: str | Path) -> bool:
+    """Whether `path` holds evaluation results this package wrote (a JSON object with
+    "overall" and "per_room_type"); False for anything unreadable, binary or other."""
+    try:
+        with open(path, "rb") as f:
+            if not f.read(64).lstrip().startswith(b"{"):
+                return False
+        doc = json.loads(Path(path).read_bytes().decode("utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(doc, dict) and isinstance(doc.get("overall"), dict) \
+        and isinstance(doc.get("per_room_type"), dict)
+
+
+def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | None = None,
+             episodes: str | None = None, episode_seed: int = 0,
+             per_room_type: int = EPISODES_PER_ROOM_TYPE, seed: int = 0,
+             batch_size: int | None = None, out: str | Path | None = None,
+             progress: bool = True) -> dict:
+    """Evaluate a loaded policy on a split's fixed episode set -> results dict (overall,
+    per room type, per target, failure analysis; docs/evaluation.md) with the policy,
+    split, scenes, episode_file and out. The episodes are replayed from `episodes` or
+    sampled with episode_seed (and saved beside `out`); the results go to `out` (default
+    runs/eval/<name>-<scenes>-<split>.json). Files that are not ours are never replaced."""
+    from tqdm import tqdm
+
+    from orgnav_jax import env, evaluation
+    from orgnav_jax.episodes import is_episode_file, load_episodes, sample_episodes, \
+        save_episodes
+    from orgnav_jax.scenes import load_scenes
+    if split not in ("train", "val", "test"):
+        raise UserError(f"split {split!r}: expected train, val or test")
+    if per_room_type < 1:
+        raise UserError(f"--episodes-per-room-type {per_room_type}: expected an integer >= 1")
+    if batch_size is not None and batch_size < 1:
+        raise UserError(f"--batch-size {batch_size}: expected an integer >= 1")
+    if episode_seed < 0:
+        raise UserError(f"--episode-seed {episode_seed}: expected an integer >= 0")
+    scenes_dir = scenes_dir or loaded.scenes_dir
+    tag = Path(scenes_dir).name if scenes_dir else loaded.scene_preset
+    out = Path(out or f"runs/eval/{loaded.name}-{tag}-{split}.json")
+    check_output_file(out, is_results_json, RESULTS)
+    ep_out = out.with_name(f"episodes-{tag}-{split}-seed{episode_seed}.json")
+    if not episodes:      # a sampled set is saved beside the results
+        check_output_file(ep_out, is_episode_file, EPISODE_FILE,
+                          option="the episode file beside --out")
+    scenes = load_scenes(loaded.scene_preset, loaded.scene_seed, scenes_dir) \
+        .split_view(split).to_device()
+    if episodes:
+        episode_set, ep_path = load_episodes(episodes, scenes), Path(episodes)
+        if len(episode_set) == 0:
+            raise ValueError(f"episode file {episodes} holds no episodes: nothing to "
+                             "evaluate")
+    else:
+        episode_set = sample_episodes(scenes, per_room_type, seed=episode_seed, split=split)
+        save_episodes(ep_out, episode_set, scenes)
+        ep_path = ep_out
+    with tqdm(total=len(episode_set), desc=f"evaluating {loaded.policy.name}", unit="ep",
+              disable=not progress, file=sys.stderr) as bar:
+        result = evaluation.evaluate(loaded.policy, loaded.params, scenes, episode_set,
+                                     env.EnvParams.evaluation(), seed=seed,
+                                     batch_size=batch_size or loaded.batch_size,
+                                     progress=bar.update)
+    result.update({"policy": loaded.name, "split": split, "scenes": tag,
+                   "episode_file": str(ep_path), "out": str(out)})
+    write_text_atomic(out, json.dumps(result, indent=1))
+    return result
+
+
+def evaluate_policy(policy: str = "random", split: str = "test", scene_preset: str = "small",
+                    **kw) -> dict:
+    """evaluate() of a named policy ('random', 'expert') on a preset or scenes_dir."""
+    loaded = dataclasses.replace(load_policy(policy), scene_preset=scene_preset)
+    return evaluate(loaded, split, **kw)
+
+
+def evaluate_run(run_dir: str | Path, split: str = "test", **kw) -> dict:
+    """evaluate() of a run directory: a training run's best-on-val model, or a stage-2
+    run's base with TPN's test-time updates (kw may hold test-time fields then)."""
+    from orgnav_jax.tpn.config import TEST_TIME_FIELDS
+    test_time = {k: kw.pop(k) for k in list(kw) if k in TEST_TIME_FIELDS}
+    config = Path(run_dir) / "config.json"
+    try:
+        stage = json.loads(config.read_text()).get("stage", "nav")
+    except (OSError, ValueError, AttributeError):
+        stage = "nav"                    # load_config names what is wrong
+    loaded = (load_policy(tpn_dir=str(run_dir), **test_time) if stage == "tpn"
+              else load_policy(run_dir=str(run_dir), **test_time))
+    return evaluate(loaded, split, **kw)
+
+
+def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
+    """Stage 1: train (or resume) the navigation run cfg.run_dir -> summary (best val,
+    env steps, compile and wall time; the final runner under 'runner')."""
+    from orgnav_jax.training.loop import train as train_navigation
+    return train_navigation(cfg, resume=resume, progress=progress)
+
+
+def train_tpn(cfg, resume: bool = False, progress: bool = True) -> dict:
+    """Stage 2: train (or resume) the TPN of cfg.run_dir on its frozen base -> summary."""
+    from orgnav_jax.tpn.stage2 import train_tpn as train_stage2
+    return train_stage2(cfg, resume=resume, progress=progress)
+
+
+def test_run(run_dir: str | Path, progress: bool = True) -> dict:
+    """The run's test-split evaluation, written to RUN_DIR/test_results.json."""
+    return evaluate_run(run_dir, "test", out=Path(run_dir) / "test_results.json",
+                        progress=progress)
+
+
+def train_both(cfg: TrainConfig, resume: bool = False, progress: bool = True,
+               test: bool = True, **tpn_fields) -> dict:
+    """Both stages: the navigation run, then its TPN (in RUN_DIR/tpn; tpn_fields are
+    TPNConfig fields such as tpn_lr, total_episodes), each tested on the test split when
+    `test` -> {"nav": summary, "tpn": summary} (summaries hold "test" results)."""
+    from orgnav_jax.tpn.config import get_tpn_config
+    nav = train(cfg, resume=resume, progress=progress)
+    if test:
+        nav["test"] = test_run(cfg.run_dir, progress)["overall"]
+    tpn_cfg = get_tpn_config(base_dir=cfg.run_dir, **tpn_fields)
+    tpn = train_tpn(tpn_cfg, resume=resume and is_run_dir(tpn_cfg.run_dir),
+                    progress=progress)
+    if test:
+        tpn["test"] = test_run(tpn_cfg.run_dir, progress)["overall"]
+    return {"nav": nav, "tpn": tpn}
+
+
+def resume_config(run_dir: str | Path, **changes) -> TrainConfig:
+    """The saved config of a training run, in the directory given (a copied or moved run
+    resumes where it is), with `changes` (budget, scenes_dir) applied."""
+    return dataclasses.replace(load_config(run_dir), run_dir=str(run_dir), **changes)
