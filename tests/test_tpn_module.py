@@ -251,3 +251,16 @@ def test_projection_keeps_cosine_of_near_identical():
     cos_raw = jnp.sum(vd.unit(x.reshape(8, -1)) * vd.unit(y.reshape(8, -1)), -1)
     assert float(jnp.abs(cos(x, y) - cos_raw).mean()) < 0.2   # std ~ (1 - c^2) / sqrt(64)
     assert float(cos(x, y).max()) < 0.9
+
+
+def test_the_config_parts_default_like_the_flat_config():
+    """TPNConfig is the flat surface of its parts: their defaults agree."""
+    from orgnav_jax.tpn.config import DeadlockMemory, TestTime, TPNConfig, TPNNetwork
+    cfg = TPNConfig()
+    assert cfg.network == TPNNetwork() and cfg.memory == DeadlockMemory()
+    assert cfg.test_time() == TestTime()
+    changed = TPNConfig(tpn_lr=1e-3, deadlock="cosine", top_k=3)
+    assert changed.test_time().tpn_lr == 1e-3 and changed.memory.deadlock == "cosine"
+    assert changed.network.top_k == 3
+    # runs differing in directories, seeds or stage-2 budget share the test-time key
+    assert TPNConfig(run_dir="a", seed=3, total_episodes=64).test_time() == TestTime()

@@ -14,10 +14,10 @@ import math
 from pathlib import Path
 from typing import Literal, get_args
 
-from orgnav_jax.compile_cache import keep_only
 from orgnav_jax.training.config import (
-    COUNT, CONFIG_VERSION, INT32_MAX, POSITIVE, SEED, Range, _parse_bool, check_ranges,
-    check_types, read_config)
+    CONFIG_VERSION, COUNT, INT32_MAX, POSITIVE, READABLE_VERSIONS, SEED, Range, _parse_bool,
+    check_ranges, check_types)
+from orgnav_jax.training.run_dir import read_config
 
 Scope = Literal["actor", "trunk", "all"]     # parameters a test-time update changes
 Detector = Literal["visited", "cosine"]      # external memory: visited set or feature match
@@ -26,6 +26,40 @@ Target = Literal["tpn", "random"]            # update target (Table 2: "random")
 Act = Literal["sample", "greedy"]            # the frozen base's actions in stage 2
 SCOPES, DETECTORS, WHEN, TARGETS, ACTS = (get_args(t) for t in (Scope, Detector, When,
                                                                  Target, Act))
+
+
+# The TPN's settings by concern. TPNConfig below is their one flat surface (config.json,
+# command-line options); each consumer takes only its part: the network's widths
+# (build_tpn), the deadlock detector (tpn/deadlock.py), the test-time update (the
+# test-time policy's compile-cache key); stage 2's fields stay on TPNConfig.
+@dataclasses.dataclass(frozen=True)
+class TPNNetwork:
+    """Widths of the TPN network (models.tpn.TPN)."""
+    action_embed: int = 32
+    mlp: int = 256
+    top_k: int = 10
+
+
+@dataclasses.dataclass(frozen=True)
+class DeadlockMemory:
+    """The external memory that flags deadlock steps (tpn/deadlock.py)."""
+    deadlock: Detector = "visited"
+    cosine_threshold: float = 0.99
+    signature_dim: int = 64
+
+
+@dataclasses.dataclass(frozen=True)
+class TestTime:
+    """What the test-time policy reads: the update and its deadlock detector."""
+    tpn_lr: float = 1e-4
+    scope: Scope = "all"
+    when: When = "deadlock"
+    target: Target = "tpn"
+    reset_every: int = 50
+    tpn_train_mode: bool = False
+    deadlock: Detector = "visited"
+    cosine_threshold: float = 0.99
+    signature_dim: int = 64
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,14 +132,27 @@ class TPNConfig:
         check_ranges(self, FIELD_RANGES, "TPN config field")
         return self
 
-    def test_time(self) -> "TPNConfig":
-        """Only the fields the test-time policy reads (others default), so that runs which
-        differ in directories, seeds or stage-2 budget share one compiled evaluation."""
-        return keep_only(self, TEST_TIME_FIELDS + ("signature_dim",))
+    @property
+    def network(self) -> TPNNetwork:
+        return _part(TPNNetwork, self)
+
+    @property
+    def memory(self) -> DeadlockMemory:
+        return _part(DeadlockMemory, self)
+
+    def test_time(self) -> TestTime:
+        """The fields the test-time policy reads, so that runs which differ in
+        directories, seeds or stage-2 budget share one compiled evaluation."""
+        return _part(TestTime, self)
 
     def to_json(self) -> str:
         return json.dumps({"version": CONFIG_VERSION, "stage": "tpn",
                            **dataclasses.asdict(self)}, indent=1)
+
+
+
+def _part(cls, cfg):
+    return cls(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cls)})
 
 
 FIELDS = {f.name for f in dataclasses.fields(TPNConfig)}
@@ -138,7 +185,7 @@ def get_tpn_config(**fields) -> TPNConfig:
 
 def load_tpn_config(run_dir: str | Path) -> TPNConfig:
     """The TPNConfig saved in a stage-2 run directory; clear errors otherwise."""
-    return read_config(run_dir, TPNConfig, stage="tpn")
+    return read_config(run_dir, TPNConfig, "tpn", READABLE_VERSIONS)
 
 
 TEST_TIME_FIELDS = ("tpn_lr", "scope", "when", "target", "deadlock", "cosine_threshold",

@@ -1,7 +1,10 @@
 """The external memory: which steps are deadlocks (shared by stage 2 and test time).
 
-    vision = detector_init(cfg, batch, episode_cap)
-    is_deadlock, vision = detect(cfg, vision, obs.deadlock, inputs.glob, fresh)
+    vision = detector_init(memory, batch, episode_cap)
+    is_deadlock, vision = detect(memory, vision, obs.deadlock, inputs.glob, fresh)
+
+`memory` is a tpn.config.DeadlockMemory (or anything with its fields: deadlock,
+cosine_threshold, signature_dim, such as the test-time config).
 
 "visited" is the release's detector: the env's flag (state visited before in the episode,
 or the last move failed). "cosine" is the paper's (Sec. 3.4, "External Memory"): the

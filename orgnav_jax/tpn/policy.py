@@ -41,7 +41,8 @@ from orgnav_jax.errors import choose
 from orgnav_jax.evaluation import Policy
 from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
 from orgnav_jax.models.tpn import TPN, memory_init, memory_record, memory_reset
-from orgnav_jax.tpn.config import TPNConfig, get_tpn_config, load_tpn_config
+from orgnav_jax.tpn.config import (
+    TestTime, TPNConfig, TPNNetwork, get_tpn_config, load_tpn_config)
 from orgnav_jax.tpn.deadlock import detect, detector_init
 from orgnav_jax.tpn.fast_weights import DenseFastWeights, scope_size
 from orgnav_jax.tpn.lowrank import LowRankFastWeights, make_plan, plan_floats
@@ -61,18 +62,19 @@ class TPNCarry:
 IMPLS = ("auto", "dense", "lowrank")
 
 
-def build_tpn(nav_cfg, cfg: TPNConfig) -> TPN:
+def build_tpn(nav_cfg, cfg: TPNNetwork) -> TPN:
+    """The TPN network for a navigation config (its hidden width) and TPN widths."""
     return TPN(hidden=nav_cfg.hidden, action_embed=cfg.action_embed, mlp=cfg.mlp,
                top_k=cfg.top_k)
 
 
-def update_slots(cfg: TPNConfig) -> int:
+def update_slots(cfg: TestTime) -> int:
     """Updates an episode can take between two resets (one per step at most)."""
     longest = max(EnvParams.evaluation().max_steps)
     return min(cfg.reset_every, longest) if cfg.reset_every > 0 else longest
 
 
-def fast_weights(model, cfg: TPNConfig, base_params, impl: str = "auto"):
+def fast_weights(model, cfg: TestTime, base_params, impl: str = "auto"):
     """The per-episode fast weights of cfg.scope: dense copies for the actor head (the
     model up to the LSTM runs once, shared), low-rank LSTM deltas otherwise ("auto");
     or forced ("dense": the reference, "lowrank")."""
@@ -84,7 +86,7 @@ def fast_weights(model, cfg: TPNConfig, base_params, impl: str = "auto"):
 
 
 @compiled_once
-def tpn_policy(model, tpn: TPN, cfg: TPNConfig, name: str = "TPN", dropout: float = 0.0,
+def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float = 0.0,
                impl: str = "auto") -> Policy:
     """policy_params = {"base": navigation variables, "tpn": TPN variables}. `dropout`:
     the navigation model's rate, used with cfg.tpn_train_mode only."""
@@ -145,7 +147,7 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
     cfg = load_tpn_config(run_dir)
     cfg = get_tpn_config(**{**dataclasses.asdict(cfg), **test_time})
     model, base_params, nav_cfg = load_run_model(cfg.base_dir)
-    tpn = build_tpn(nav_cfg, cfg)
+    tpn = build_tpn(nav_cfg, cfg.network)
     like = init_tpn_params(tpn, nav_cfg, jax.random.PRNGKey(0))
     ckpt = RunCheckpoints(run_dir)
     if ckpt.best.latest_step() is None:
@@ -159,14 +161,14 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
         {"base": base_params, "tpn": tpn_params}, nav_cfg, cfg
 
 
-def default_batch_size(base_params, cfg: TPNConfig | str, impl: str = "auto",
+def default_batch_size(base_params, cfg: TestTime | TPNConfig | str, impl: str = "auto",
                        budget_bytes: float = 4e9) -> int:
     """Episodes per evaluation batch (16 to 1000) so that the fast weights, with their
     gradient and update copies, stay within budget_bytes. `cfg`: the TPNConfig, or just a
     scope (then the slots of reset_every=0, the most an episode can need). At the paper's
     widths, all parameters: 1000 with reset_every 50, 400 with 0 (full copies: 44)."""
     if isinstance(cfg, str):
-        cfg = TPNConfig(scope=cfg, reset_every=0)
+        cfg = TestTime(scope=cfg, reset_every=0)
     if impl == "dense" or (impl == "auto" and cfg.scope == "actor"):
         floats = 3 * scope_size(base_params, cfg.scope)
     else:

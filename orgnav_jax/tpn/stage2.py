@@ -70,7 +70,7 @@ def collect(model, base_params, cfg: TPNConfig, scenes, key, num: int) -> Episod
         action = choose({"sample": lambda: jax.random.categorical(k, logits),
                          "greedy": lambda: jnp.argmax(logits, -1)},
                         cfg.act, "stage-2 action rule (act)")().astype(jnp.int32)
-        deadlock, vision = detect(cfg, vision, obs.deadlock, inputs.glob, fresh)
+        deadlock, vision = detect(cfg.memory, vision, obs.deadlock, inputs.glob, fresh)
         expert = scenes.expert_action[state.scene, state.state, state.target]
         _, state2, _, done, info = v_step(state, action, scenes, params)
         state = where_rows(running, state2, state)
@@ -80,7 +80,7 @@ def collect(model, base_params, cfg: TPNConfig, scenes, key, num: int) -> Episod
         return (state, lstm, running & ~done, success, vision, jnp.zeros_like(fresh)), out
 
     init = (state, model.initial_carry(num), jnp.ones(num, bool), jnp.zeros(num, bool),
-            detector_init(cfg, num, cfg.max_steps), jnp.ones(num, bool))
+            detector_init(cfg.memory, num, cfg.max_steps), jnp.ones(num, bool))
     (_, _, _, success, _, _), (h, probs, valid, deadlock, expert) = jax.lax.scan(
         body, init, jax.random.split(k_act, cfg.max_steps))
     batch_major = lambda x: jnp.swapaxes(x, 0, 1)
@@ -145,7 +145,7 @@ def _train_tpn(cfg: TPNConfig, run_dir: Path, model, base_params, nav_cfg, scene
                resume: bool, progress: bool, stop_after_chunks: int | None) -> dict:
     train_scenes = scenes.split_view("train").to_device()
     val_scenes = scenes.split_view("val").to_device()
-    tpn = build_tpn(nav_cfg, cfg)
+    tpn = build_tpn(nav_cfg, cfg.network)
     optimizer = make_optimizer(cfg)
     k_init, k_run = jax.random.split(jax.random.PRNGKey(cfg.seed))
     params = init_tpn_params(tpn, nav_cfg, k_init)

@@ -259,36 +259,10 @@ def get_config(preset: str = "small", **overrides) -> TrainConfig:
     return TrainConfig(**{**PRESETS[preset], **overrides}).validate()
 
 
-STAGES = {"nav": "training", "tpn": "TPN (stage 2)"}
-
-
-def read_config(run_dir: str | Path, cls, stage: str = "nav"):
-    """config.json of a run directory -> cls(**fields).validate(), after checking its stage,
-    version and field names; clear errors otherwise."""
-    path = Path(run_dir) / "config.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{path} not found: {run_dir} is not a {STAGES[stage]} run "
-                                "directory")
-    doc = json.loads(path.read_text())
-    found = doc.pop("stage", "nav")
-    if found != stage:
-        raise ValueError(f"{path}: not a {STAGES[stage]} run, but a {STAGES.get(found, found)}"
-                         " one")
-    version = doc.pop("version", None)
-    if version == 2 and cls is TrainConfig:
-        doc = {**V2_DEFAULTS, **doc}
-    if version not in READABLE_VERSIONS:
-        raise ValueError(f"{path}: config version {version}, this orgnav_jax reads versions "
-                         f"{list(READABLE_VERSIONS)}")
-    bad = sorted(set(doc) - {f.name for f in dataclasses.fields(cls)})
-    if bad:
-        raise ValueError(f"{path}: unknown config field(s) {bad}")
-    return cls(**doc).validate()
-
-
 def load_config(run_dir: str | Path) -> TrainConfig:
-    """The TrainConfig saved in a training run directory (see read_config)."""
-    return read_config(run_dir, TrainConfig)
+    """The TrainConfig saved in a training run directory (run_dir.read_config)."""
+    from orgnav_jax.training.run_dir import read_config
+    return read_config(run_dir, TrainConfig, "nav", READABLE_VERSIONS, {2: V2_DEFAULTS})
 
 
 def _parse_bool(text: str) -> bool:

@@ -40,6 +40,39 @@ BUDGET_FIELDS = ("total_env_steps", "total_episodes")   # a resume may extend th
 LOCATION_FIELDS = ("run_dir", "scenes_dir", "base_dir")  # a resume follows the given ones
 
 
+STAGES = {"nav": "training", "tpn": "TPN (stage 2)"}   # the kinds of run, in words
+
+
+def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int, ...],
+                upgrades: dict[int, dict] | None = None):
+    """config.json of a run directory -> cls(**fields).validate(), after checking that it
+    is JSON, of this `stage`, of one of `versions` (upgrades[v]: the values of fields a
+    version-v config lacks) with known field names; one-line errors naming the file."""
+    path = Path(run_dir) / CONFIG_FILE
+    if not path.exists():
+        raise FileNotFoundError(f"{path} not found: {run_dir} is not a {STAGES[stage]} run "
+                                "directory")
+    try:
+        doc = json.loads(path.read_text())
+    except (ValueError, RecursionError) as err:
+        raise ValueError(f"{path}: not a valid config JSON ({type(err).__name__})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a JSON object of config fields")
+    found = doc.pop("stage", "nav")
+    if found != stage:
+        raise ValueError(f"{path}: not a {STAGES[stage]} run, but a "
+                         f"{STAGES.get(found, found)} one")
+    version = doc.pop("version", None)
+    if version not in versions:
+        raise ValueError(f"{path}: config version {version}, this orgnav_jax reads versions "
+                         f"{list(versions)}")
+    doc = {**(upgrades or {}).get(version, {}), **doc}
+    bad = sorted(set(doc) - {f.name for f in dataclasses.fields(cls)})
+    if bad:
+        raise ValueError(f"{path}: unknown config field(s) {bad}")
+    return cls(**doc).validate()
+
+
 class RunDirLocked(UserError):
     """Another live process trains in this run directory."""
 
