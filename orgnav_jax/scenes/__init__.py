@@ -22,7 +22,8 @@ from orgnav_jax.scenes.cache import load_or_build, load_scenes
 from orgnav_jax.scenes.raw import build_to
 
 __all__ = [
-    "build", "build_to", "load", "save", "load_or_build", "load_scenes", "disk_size", "SceneSet", "ScenePreset",
+    "build", "build_to", "load", "save", "load_or_build", "load_scenes", "disk_size",
+    "SceneSet", "ScenePreset",
     "PRESETS", "get_preset", "expert_tables", "generate_room", "render_ascii", "Room",
     "decode_global", "decode_appearance", "gather_features", "UNREACHABLE", "NO_ACTION",
 ]

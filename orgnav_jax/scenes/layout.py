@@ -32,8 +32,8 @@ REACHABLE_RANGE = {
     "bedroom": (90, 320), "bathroom": (40, 120),
 }
 # AI2-THOR's room sizes (preset 'large', room_sizes="thor"): 16 states per reachable cell,
-# so kitchens ~1,500 states (900-2,200), living rooms 1,900-6,100, bedrooms ~2,200
-# (1,200-3,700), bathrooms ~1,000 (640-1,500); iTHOR's rooms span 576-6,160 states.
+# so kitchens ~1,500 states (900-2,200), living rooms ~4,000 (1,600-6,100), bedrooms
+# ~2,100 (1,200-3,700), bathrooms ~1,000 (640-1,500); iTHOR's rooms span 576-6,160.
 THOR_ROOM_SIZE = {
     "kitchen": ((10, 14), (10, 16)),
     "living_room": ((10, 22), (11, 24)),

@@ -87,8 +87,8 @@ PRESETS: dict[str, ScenePreset] = {
     # For tests and quick demos: 2 train, 1 val, 1 test room per type.
     "tiny": ScenePreset("tiny", (2, 1, 1), global_dim=16, appearance_dim=16),
     # Real size, like an import of the authors' data: AI2-THOR's room sizes, paper widths,
-    # decoded float16 features (bases None). Default: the 40 val + test rooms (~88 k
-    # states, ~6 GB); choose fewer with num_rooms or rooms_per_type. Built to disk only
+    # decoded float16 features (bases None). Default: the 40 val + test rooms (88 k
+    # states, 6.4 GB of features); choose fewer with num_rooms or rooms_per_type. Built to disk only
     # (python -m orgnav_jax.scenes build --preset large --out DIR; scenes.build_to).
     "large": ScenePreset("large", (0, 5, 5), global_dim=512, appearance_dim=512,
                          room_sizes="thor", raw=True),
