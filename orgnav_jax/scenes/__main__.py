@@ -3,7 +3,7 @@
     python -m orgnav_jax.scenes build --preset small --out data/small [--seed 0]
     python -m orgnav_jax.scenes build --preset large --num-rooms 10 --out data/large10
     python -m orgnav_jax.scenes info data/small
-    python -m orgnav_jax.scenes show 201 [--seed 0]     # ASCII top view of one room
+    python -m orgnav_jax.scenes show 201 [--seed 0] [--room-sizes thor]  # ASCII top view
     python -m orgnav_jax.scenes import --offline-dir DIR --out data/thor   # authors' data
     python -m orgnav_jax.scenes export --preset tiny --out out/offline     # to their format
 """
@@ -18,7 +18,7 @@ import time
 from orgnav_jax.errors import run_cli
 from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.builder import build
-from orgnav_jax.scenes.layout import generate_room, render_ascii
+from orgnav_jax.scenes.layout import ROOM_SIZE_PROFILES, generate_room, render_ascii
 from orgnav_jax.scenes.offline import cli as offline_cli
 from orgnav_jax.scenes.presets import PRESETS, get_preset
 from orgnav_jax.scenes.raw import build_raw_to
@@ -50,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("show", help="print the ASCII top view of one generated room")
     s.add_argument("floorplan", type=int, help="AI2-THOR number, e.g. 1, 201, 301, 401")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--room-sizes", default="default", choices=sorted(ROOM_SIZE_PROFILES),
+                   help="room-size profile: default, or thor (AI2-THOR's, preset large)")
     offline_cli.add_parsers(sub)
     args = parser.parse_args(argv)
 
@@ -78,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
         summary = summarize(load(args.path, mmap=True))
         summary.update(disk_mb=disk_size(args.path) / 2**20)
     else:
-        print(render_ascii(generate_room(args.seed, args.floorplan)))
+        print(render_ascii(generate_room(args.seed, args.floorplan,
+                                         room_sizes=args.room_sizes)))
         print("# wall, = furniture, o blocking object, . reachable, * object, D door")
         return 0
     print(format_summary(summary))

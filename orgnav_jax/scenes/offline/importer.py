@@ -173,10 +173,11 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
         scene_id=np.array(numbers, np.int32), split=np.array([g.split for g in graphs], np.int32),
         info=(("format", FORMAT_NAME), ("version", FORMAT_VERSION), ("preset", "offline"),
               ("source", str(Path(offline_dir).resolve())),
-              ("detection_file", det_paths[0].name))
-        + ((("splits", str(Path(splits).resolve())),) if splits is not None else ())
-        + ((("room_names", tuple(custom.values())), ("room_name_ids", tuple(custom)))
-           if custom else ()))
+              ("detection_file", det_paths[0].name)))
+    if splits is not None:  # custom names first: validate's messages use scene_names
+        out = out.replace(info=out.info + (("splits", str(Path(splits).resolve())),) + (
+            (("room_names", tuple(custom.values())), ("room_name_ids", tuple(custom)))
+            if custom else ()))
     out.validate(str(offline_dir))
     opt = [r["optimal_action"] for r in per_scene if "optimal_action" in r]
     report = {
