@@ -7,6 +7,8 @@ Notebook API::
     scenes.save(s, "data/small")
     s = scenes.load("data/small")
     train = s.split_view("train")
+    scenes.build_to("large", 0, "data/large10", num_rooms=10)   # raw, written to disk
+    s = scenes.load("data/large10", mmap=True)
 """
 
 from orgnav_jax.scenes.builder import build
@@ -17,9 +19,11 @@ from orgnav_jax.scenes.presets import PRESETS, ScenePreset, get_preset
 from orgnav_jax.scenes.sceneset import NO_ACTION, UNREACHABLE, SceneSet
 from orgnav_jax.scenes.storage import disk_size, load, save
 from orgnav_jax.scenes.cache import load_or_build, load_scenes
+from orgnav_jax.scenes.raw import build_to
 
 __all__ = [
-    "build", "load", "save", "load_or_build", "load_scenes", "disk_size", "SceneSet", "ScenePreset",
+    "build", "build_to", "load", "save", "load_or_build", "load_scenes", "disk_size",
+    "SceneSet", "ScenePreset",
     "PRESETS", "get_preset", "expert_tables", "generate_room", "render_ascii", "Room",
     "decode_global", "decode_appearance", "gather_features", "UNREACHABLE", "NO_ACTION",
 ]

@@ -1,8 +1,9 @@
 """Command line: build, inspect or render the synthetic benchmark.
 
     python -m orgnav_jax.scenes build --preset small --out data/small [--seed 0]
+    python -m orgnav_jax.scenes build --preset large --num-rooms 10 --out data/large10
     python -m orgnav_jax.scenes info data/small
-    python -m orgnav_jax.scenes show 201 [--seed 0]     # ASCII top view of one room
+    python -m orgnav_jax.scenes show 201 [--seed 0] [--room-sizes thor]  # ASCII top view
     python -m orgnav_jax.scenes import --offline-dir DIR --out data/thor   # authors' data
     python -m orgnav_jax.scenes export --preset tiny --out out/offline     # to their format
 """
@@ -17,9 +18,10 @@ import time
 from orgnav_jax.errors import run_cli
 from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.builder import build
-from orgnav_jax.scenes.layout import generate_room, render_ascii
+from orgnav_jax.scenes.layout import ROOM_SIZE_PROFILES, generate_room, render_ascii
 from orgnav_jax.scenes.offline import cli as offline_cli
-from orgnav_jax.scenes.presets import PRESETS
+from orgnav_jax.scenes.presets import PRESETS, get_preset
+from orgnav_jax.scenes.raw import build_raw_to
 from orgnav_jax.scenes.storage import disk_size, is_scene_set, load, save
 from orgnav_jax.scenes.summary import format_summary, summarize
 
@@ -33,6 +35,14 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--out", required=True, help="output directory (an existing SceneSet is "
                    "replaced atomically; any other non-empty directory is refused)")
+    b.add_argument("--rooms", nargs=3, type=int, metavar=("TRAIN", "VAL", "TEST"),
+                   help="rooms per room type per split (default: the preset's)")
+    b.add_argument("--num-rooms", type=int, help="only N rooms in all, taken in turn from "
+                   "each room type and split (e.g. 10, 20, 40 of preset large)")
+    b.add_argument("--global-dim", type=int, help="G, channels of the 7x7 global map "
+                   "(default: the preset's)")
+    b.add_argument("--appearance-dim", type=int, help="d, appearance feature width "
+                   "(default: the preset's)")
     b.add_argument("--json", action="store_true", help="also print the summary as JSON")
     i = sub.add_parser("info", help="summarize a saved benchmark")
     i.add_argument("path")
@@ -40,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("show", help="print the ASCII top view of one generated room")
     s.add_argument("floorplan", type=int, help="AI2-THOR number, e.g. 1, 201, 301, 401")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--room-sizes", default="default", choices=sorted(ROOM_SIZE_PROFILES),
+                   help="room-size profile: default, or thor (AI2-THOR's, preset large)")
     offline_cli.add_parsers(sub)
     args = parser.parse_args(argv)
 
@@ -49,17 +61,27 @@ def main(argv: list[str] | None = None) -> int:
         if args.preset not in PRESETS:
             parser.error(f"unknown preset {args.preset!r}: expected one of {sorted(PRESETS)}")
         check_output_dir(args.out, is_scene_set, "a SceneSet")  # before the build
+        overrides = {k: v for k, v in (("rooms_per_type", tuple(args.rooms or ()) or None),
+                                       ("num_rooms", args.num_rooms),
+                                       ("global_dim", args.global_dim),
+                                       ("appearance_dim", args.appearance_dim))
+                     if v is not None}
+        preset = get_preset(args.preset, **overrides)
         t0 = time.perf_counter()
-        scenes = build(args.preset, args.seed, progress=True)
+        if preset.raw:  # decoded features streamed to disk (scenes/raw.py)
+            scenes = build_raw_to(preset, args.seed, args.out, progress=True)
+        else:
+            scenes = build(preset, args.seed, progress=True)
+            save(scenes, args.out)
         build_s = time.perf_counter() - t0
-        save(scenes, args.out)
         summary = summarize(scenes)
         summary.update(build_s=build_s, disk_mb=disk_size(args.out) / 2**20, out=args.out)
     elif args.command == "info":
         summary = summarize(load(args.path, mmap=True))
         summary.update(disk_mb=disk_size(args.path) / 2**20)
     else:
-        print(render_ascii(generate_room(args.seed, args.floorplan)))
+        print(render_ascii(generate_room(args.seed, args.floorplan,
+                                         room_sizes=args.room_sizes)))
         print("# wall, = furniture, o blocking object, . reachable, * object, D door")
         return 0
     print(format_summary(summary))

@@ -56,9 +56,11 @@ def room_detections(room: Room, seed: int, cells: np.ndarray, poses: np.ndarray)
     return seen, dist, det_box, det_conf, code
 
 
-def room_arrays(seed: int, floorplan: int, split: str, room: Room | None = None) -> RoomArrays:
-    """Everything precomputed for one room (pure function of seed and floorplan)."""
-    room = room if room is not None else generate_room(seed, floorplan)
+def room_arrays(seed: int, floorplan: int, split: str, room: Room | None = None,
+                room_sizes: str = "default") -> RoomArrays:
+    """Everything precomputed for one room (pure function of seed, floorplan and the
+    room-size profile)."""
+    room = room if room is not None else generate_room(seed, floorplan, room_sizes=room_sizes)
     cells = geometry.reachable_cells(room.reachable)
     poses = geometry.state_poses(cells)
     seen, dist, det_box, det_conf, app_code = room_detections(room, seed, cells, poses)
@@ -143,12 +145,21 @@ def build(preset: str | ScenePreset = "small", seed: int = 0, *, progress: bool 
 
     preset: 'small', 'paper', 'tiny' or a ScenePreset; overrides replace preset fields
     (e.g. rooms_per_type=(4, 1, 1)). The same (preset, seed) gives identical arrays.
+    A raw preset ('large') is refused: it is written to disk by scenes.build_to; with
+    raw=False it is built here with codes and bases like the others.
     """
     p = get_preset(preset, **overrides)
+    if p.raw:
+        raise ValueError(f"preset {p.name!r} stores raw features (paper widths: about 72 KB "
+                         "per state, ~6 GB for its 40 rooms) and is only written to disk, "
+                         "room by room: python -m orgnav_jax.scenes build --preset "
+                         f"{p.name} --out DIR (or scenes.build_to), then load DIR")
     plans = p.floorplans()
-    rooms = [room_arrays(seed, fp, split)
+    rooms = [room_arrays(seed, fp, split, room_sizes=p.room_sizes)
              for fp, _, split in tqdm(plans, desc=f"rooms ({p.name})", disable=not progress,
                                       unit="room")]
     info = (("format", FORMAT_NAME), ("version", FORMAT_VERSION), ("preset", p.name),
             ("seed", int(seed)), ("rooms_per_type", tuple(p.rooms_per_type)))
+    if p.room_sizes != "default" or p.num_rooms is not None:
+        info += (("room_sizes", p.room_sizes), ("num_rooms", len(plans)))
     return stack_rooms(rooms, info=info, **{k: v for k, v in feature_bases(p).items()})

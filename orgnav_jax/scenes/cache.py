@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 from orgnav_jax.scenes.builder import build
+from orgnav_jax.scenes.presets import get_preset
 from orgnav_jax.scenes.sceneset import SceneSet
 from orgnav_jax.scenes.storage import META_FILE, load, save
 
@@ -18,7 +19,14 @@ def default_cache_dir() -> Path:
 
 def load_or_build(preset: str = "small", seed: int = 0, cache_dir: str | os.PathLike | None = None,
                   progress: bool = True) -> SceneSet:
-    """The cached SceneSet for (preset, seed), built and saved on first use."""
+    """The cached SceneSet for (preset, seed), built and saved on first use. Raw presets
+    ('large', gigabytes) are never built here: build them with --out and load that."""
+    if get_preset(preset).raw:
+        raise ValueError(f"scene preset {preset!r} is real-size with raw features (~6 GB "
+                         "for 40 rooms) and is not built into the cache: build it once with "
+                         f"'python -m orgnav_jax.scenes build --preset {preset} --out DIR' "
+                         "(--num-rooms N for fewer rooms), then use that directory "
+                         "(--scenes DIR / scenes_dir=DIR)")
     path = Path(cache_dir or default_cache_dir()) / f"scenes-{preset}-seed{seed}"
     if (path / META_FILE).exists():
         return load(path)

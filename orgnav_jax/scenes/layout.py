@@ -31,6 +31,23 @@ REACHABLE_RANGE = {
     "kitchen": (60, 260), "living_room": (150, 380),
     "bedroom": (90, 320), "bathroom": (40, 120),
 }
+# AI2-THOR's room sizes (preset 'large', room_sizes="thor"): 16 states per reachable cell,
+# so kitchens ~1,500 states (900-2,200), living rooms ~4,000 (1,600-6,100), bedrooms
+# ~2,100 (1,200-3,700), bathrooms ~1,000 (640-1,500); iTHOR's rooms span 576-6,160.
+THOR_ROOM_SIZE = {
+    "kitchen": ((10, 14), (10, 16)),
+    "living_room": ((10, 22), (11, 24)),
+    "bedroom": ((11, 16), (12, 18)),
+    "bathroom": ((8, 11), (9, 13)),
+}
+THOR_REACHABLE_RANGE = {
+    "kitchen": (56, 140), "living_room": (100, 382),
+    "bedroom": (75, 230), "bathroom": (40, 95),
+}
+ROOM_SIZE_PROFILES = {  # name -> (interior size ranges, reachable-cell bounds)
+    "default": (ROOM_SIZE, REACHABLE_RANGE),
+    "thor": (THOR_ROOM_SIZE, THOR_REACHABLE_RANGE),
+}
 WALL_OBJECT_HEIGHT = (1.15, 1.40)  # LightSwitch centre height range (m)
 
 
@@ -67,10 +84,11 @@ def room_type_of(floorplan: int) -> str:
 class _Builder:
     """Mutable workspace while one room is laid out."""
 
-    def __init__(self, rng: np.random.Generator, room_type: str):
+    def __init__(self, rng: np.random.Generator, room_type: str,
+                 room_size: dict = ROOM_SIZE):
         self.rng = rng
         self.room_type = room_type
-        (r0, r1), (c0, c1) = ROOM_SIZE[room_type]
+        (r0, r1), (c0, c1) = room_size[room_type]
         rows, cols = int(rng.integers(r0, r1 + 1)), int(rng.integers(c0, c1 + 1))
         self.wall = np.ones((rows + 2, cols + 2), bool)
         self.wall[1:-1, 1:-1] = False
@@ -431,17 +449,24 @@ def _clutter(b: _Builder) -> None:
         b.place_furniture(kind, dims, against_wall=b.rng.random() < 0.5)
 
 
-def generate_room(seed: int, floorplan: int, max_tries: int = 50) -> Room:
-    """Lay out one room deterministically from (seed, floorplan).
+def generate_room(seed: int, floorplan: int, max_tries: int = 50,
+                  room_sizes: str = "default") -> Room:
+    """Lay out one room deterministically from (seed, floorplan, room_sizes).
 
-    Returns a Room whose reachable-cell count lies in REACHABLE_RANGE for its type.
+    room_sizes: a ROOM_SIZE_PROFILES name: "default" (the tiny/small/paper presets) or
+    "thor" (AI2-THOR's room sizes, preset 'large'). Returns a Room whose reachable-cell
+    count lies in the profile's reachable range for its type.
     """
     room_type = room_type_of(floorplan)
     assert room_type in ROOM_TYPES
-    lo, hi = REACHABLE_RANGE[room_type]
+    if room_sizes not in ROOM_SIZE_PROFILES:
+        raise ValueError(f"unknown room_sizes {room_sizes!r}: expected one of "
+                         f"{sorted(ROOM_SIZE_PROFILES)}")
+    room_size, reachable_range = ROOM_SIZE_PROFILES[room_sizes]
+    lo, hi = reachable_range[room_type]
     for attempt in range(max_tries):
         rng = np.random.default_rng([seed, floorplan, attempt])
-        b = _Builder(rng, room_type)
+        b = _Builder(rng, room_type, room_size)
         if room_type != "bathroom" and rng.random() < 0.5:
             _partition_wall(b)
         try:

@@ -10,14 +10,28 @@ from orgnav_jax.constants import FLOORPLAN_OFFSET, ROOM_TYPES, SPLITS
 @dataclasses.dataclass(frozen=True)
 class ScenePreset:
     """rooms_per_type: (train, val, test) rooms per room type (at most 20, 5, 5);
-    global_dim: G, channels of the 7x7 global map; appearance_dim: d."""
+    global_dim: G, channels of the 7x7 global map; appearance_dim: d;
+    room_sizes: the generator's room-size profile (layout.ROOM_SIZE_PROFILES): "default"
+      or "thor" (AI2-THOR's sizes: kitchens ~1,500 states, living rooms up to ~6,000);
+    raw: store the decoded features themselves (bases None, like an import) instead of
+      16-bit codes and projections; such sets are written to disk room by room
+      (scenes.build_to), never built in memory;
+    num_rooms: only this many of the rooms, taken in turn from each room type and,
+      within a type, from each split (see floorplans); None = all of them."""
     name: str
     rooms_per_type: tuple[int, int, int] = (20, 5, 5)
     global_dim: int = 32
     appearance_dim: int = 32
+    room_sizes: str = "default"
+    raw: bool = False
+    num_rooms: int | None = None
 
     def __post_init__(self):
+        from orgnav_jax.scenes.layout import ROOM_SIZE_PROFILES
         limits = (20, 5, 5)
+        if len(self.rooms_per_type) != 3:
+            raise ValueError(f"preset {self.name!r}: rooms_per_type must be (train, val, "
+                             f"test), got {self.rooms_per_type!r}")
         for split, n, hi in zip(SPLITS, self.rooms_per_type, limits):
             if not 0 <= n <= hi:
                 raise ValueError(f"preset {self.name!r}: {n} {split} rooms per type, "
@@ -25,18 +39,44 @@ class ScenePreset:
         for field in ("global_dim", "appearance_dim"):
             if getattr(self, field) < 1:
                 raise ValueError(f"preset {self.name!r}: {field} must be >= 1")
+        if self.room_sizes not in ROOM_SIZE_PROFILES:
+            raise ValueError(f"preset {self.name!r}: room_sizes {self.room_sizes!r}, "
+                             f"expected one of {sorted(ROOM_SIZE_PROFILES)}")
+        total = len(ROOM_TYPES) * sum(self.rooms_per_type)
+        if self.num_rooms is not None and not 1 <= self.num_rooms <= total:
+            raise ValueError(f"preset {self.name!r}: num_rooms {self.num_rooms}, expected "
+                             f"1..{total} (rooms_per_type {tuple(self.rooms_per_type)} x "
+                             f"{len(ROOM_TYPES)} room types)")
 
     def floorplans(self) -> list[tuple[int, str, str]]:
         """(floorplan number, room type, split) for every room, in AI2-THOR order:
-        train 1..20, val odd 21..29, test even 22..30 (+200/+300/+400 per type)."""
+        train 1..20, val odd 21..29, test even 22..30 (+200/+300/+400 per type).
+
+        With num_rooms, the first num_rooms rooms of the round robin "kitchen, living
+        room, bedroom, bathroom, kitchen, ..." where each type offers its rooms with the
+        splits in turn (train, val, test, train, ...), kept in the order above: any
+        count gets every room type and split the preset has, as evenly as possible."""
         n_train, n_val, n_test = self.rooms_per_type
-        out = []
+        per_type = []
         for room_type in ROOM_TYPES:
             base = FLOORPLAN_OFFSET[room_type]
-            out += [(base + k, room_type, "train") for k in range(1, n_train + 1)]
-            out += [(base + 21 + 2 * k, room_type, "val") for k in range(n_val)]
-            out += [(base + 22 + 2 * k, room_type, "test") for k in range(n_test)]
-        return out
+            per_type.append([[(base + k, room_type, "train") for k in range(1, n_train + 1)],
+                             [(base + 21 + 2 * k, room_type, "val") for k in range(n_val)],
+                             [(base + 22 + 2 * k, room_type, "test") for k in range(n_test)]])
+        out = [room for splits in per_type for rooms in splits for room in rooms]
+        if self.num_rooms is None:
+            return out
+        offered = [_round_robin(splits) for splits in per_type]
+        chosen = set(_round_robin(offered)[:self.num_rooms])
+        return [room for room in out if room in chosen]
+
+
+def _round_robin(lists: list[list]) -> list:
+    """[[a1, a2], [b1], [c1, c2, c3]] -> [a1, b1, c1, a2, c2, c3]."""
+    out = []
+    for k in range(max((len(x) for x in lists), default=0)):
+        out += [x[k] for x in lists if k < len(x)]
+    return out
 
 
 PRESETS: dict[str, ScenePreset] = {
@@ -46,6 +86,12 @@ PRESETS: dict[str, ScenePreset] = {
     "paper": ScenePreset("paper", (20, 5, 5), global_dim=512, appearance_dim=512),
     # For tests and quick demos: 2 train, 1 val, 1 test room per type.
     "tiny": ScenePreset("tiny", (2, 1, 1), global_dim=16, appearance_dim=16),
+    # Real size, like an import of the authors' data: AI2-THOR's room sizes, paper widths,
+    # decoded float16 features (bases None). Default: the 40 val + test rooms (88 k
+    # states, 6.4 GB of features); choose fewer with num_rooms or rooms_per_type. Built to disk only
+    # (python -m orgnav_jax.scenes build --preset large --out DIR; scenes.build_to).
+    "large": ScenePreset("large", (0, 5, 5), global_dim=512, appearance_dim=512,
+                         room_sizes="thor", raw=True),
 }
 
 

@@ -48,7 +48,8 @@ class SceneSet:
     appearance: jax.Array      # (N, S, C, Da) float16 appearance code (or feature if no basis)
     global_feat: jax.Array     # (N, S, 7, 7, Dg) float16 global code (or feature if no basis)
     room_type: jax.Array       # (N,) int32 index into ROOM_TYPES
-    scene_id: jax.Array        # (N,) int32 AI2-THOR FloorPlan number
+    scene_id: jax.Array        # (N,) int32 AI2-THOR FloorPlan number, or the id of a room
+                               #   named in info "room_names" (see scene_names)
     split: jax.Array           # (N,) int32 index into SPLITS
     appearance_proto: jax.Array | None = None  # (C, d) float32 class prototypes
     appearance_basis: jax.Array | None = None  # (Da, d) float32 view-noise basis
@@ -79,7 +80,10 @@ class SceneSet:
 
     @property
     def scene_names(self) -> list[str]:
-        return [f"FloorPlan{int(i)}" for i in np.asarray(self.scene_id)]
+        """FloorPlanN, or the folder name of a room imported with a splits file (kept in
+        info as "room_names" for the ids "room_name_ids")."""
+        names = dict(zip(self.meta("room_name_ids", ()), self.meta("room_names", ())))
+        return [names.get(int(i), f"FloorPlan{int(i)}") for i in np.asarray(self.scene_id)]
 
     def meta(self, key: str, default=None):
         """A value from `info` (preset, seed, format version, ...)."""
@@ -264,8 +268,7 @@ def validate_values(scenes: SceneSet, source: str = "SceneSet") -> None:
         n = int(np.argmax((counts < 1) | (counts > S)))
         raise ValueError(f"{source}: field 'state_count' is {counts[n]} for scene {n}, "
                          f"expected 1..{S} (the padded number of states)")
-    scene_id = np.asarray(scenes.scene_id)
-    names = [f"FloorPlan{int(i)}" for i in scene_id]
+    names = scenes.scene_names
     valid = np.asarray(scenes.state_valid)
     if not (valid == (np.arange(S)[None] < counts[:, None])).all():
         n = int(np.argmax((valid != (np.arange(S)[None] < counts[:, None])).any(1)))

@@ -68,13 +68,18 @@ def _remove_own_set(path: Path) -> None:
                       "SceneSet)", stacklevel=3)
 
 
-def save(scenes: SceneSet, path: str | os.PathLike, validate: bool = True) -> Path:
+def save(scenes: SceneSet, path: str | os.PathLike, validate: bool = True, *,
+         writers: dict | None = None) -> Path:
     """Write `scenes` to directory `path`, replacing an existing SceneSet there
     atomically. Returns the path.
 
     Refuses (FileExistsError, nothing written) a path that is a file or a non-empty
     directory that is not a SceneSet (is_scene_set). validate=True first checks the set
     (SceneSet.validate), so an invalid set is never written.
+
+    writers: {field: write(file) -> (shape, dtype)} for fields too large to hold in
+    memory: each writes its own .npy file (e.g. streamed chunk by chunk, see
+    scenes/raw.py) in place of the value in `scenes`, which validate checks instead.
     """
     path = Path(path)
     if path.is_symlink():
@@ -88,6 +93,10 @@ def save(scenes: SceneSet, path: str | os.PathLike, validate: bool = True) -> Pa
     try:
         fields = {}
         for name in _array_fields():
+            if writers and name in writers:
+                shape, dtype = writers[name](tmp / f"{name}.npy")
+                fields[name] = {"shape": list(shape), "dtype": str(np.dtype(dtype))}
+                continue
             value = getattr(scenes, name)
             if value is None:
                 continue

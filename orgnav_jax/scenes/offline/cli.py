@@ -1,6 +1,7 @@
 """`import` and `export` subcommands of `python -m orgnav_jax.scenes`.
 
     python -m orgnav_jax.scenes import --offline-dir Data/AI2thor_offline_data --out data/thor
+    python -m orgnav_jax.scenes import --offline-dir DIR --out OUT --splits splits.json
     python -m orgnav_jax.scenes export --preset tiny --out out/offline [--episodes-per-type 250]
     python -m orgnav_jax.scenes export --from data/small --out out/offline
 """
@@ -24,6 +25,11 @@ def add_parsers(sub) -> None:
     i.add_argument("--out", required=True, help="SceneSet directory (an existing SceneSet "
                    "is replaced atomically; any other non-empty directory is refused)")
     i.add_argument("--scenes", nargs="+", help="only these folders, e.g. FloorPlan1 FloorPlan2")
+    i.add_argument("--splits", help="JSON object: room (folder) name -> 'train' | 'val' | "
+                   "'test', or {\"split\": ..., \"room_type\": ...} (required for names other "
+                   "than FloorPlanN); replaces the FloorPlan numbering (docs/offline.md)")
+    i.add_argument("--only-listed", action="store_true", help="with --splits: import only "
+                   "the rooms the file names (default: it must name every scene folder)")
     i.add_argument("--detection-file", help="detection hdf5 name (default: first found of "
                    "fasterrcnn_features_22cls.hdf5, det_feature_categories.hdf5, ...)")
     i.add_argument("--detection-classes", help="JSON file: list of the detection file's class "
@@ -74,12 +80,15 @@ def _rows(args):
 
 
 def _import(args) -> int:
+    if args.only_listed and not args.splits:
+        raise OfflineFormatError("--only-listed needs --splits FILE.json")
     from orgnav_jax.scenes.offline.importer import format_report, import_to
     from orgnav_jax.scenes.summary import format_summary, summarize
     scenes, report = import_to(
         args.offline_dir, args.out, scenes=args.scenes, detection_file=args.detection_file,
         detection_rows=_rows(args), unknown_types="error" if args.strict_types else "ignore",
-        unmatched_edges="ignore" if args.ignore_unmatched_edges else "error", progress=True)
+        unmatched_edges="ignore" if args.ignore_unmatched_edges else "error", progress=True,
+        splits=args.splits, only_listed=args.only_listed)
     print(format_report(report))
     print(format_summary(summarize(scenes)))
     print(f"saved to {args.out}")

@@ -33,6 +33,7 @@ from orgnav_jax.scenes.offline.features_io import (
 )
 from orgnav_jax.scenes.offline.optimal import compare_optimal
 from orgnav_jax.scenes.offline.reader import SceneGraph, read_scene
+from orgnav_jax.scenes.offline.splits import assign_splits
 from orgnav_jax.scenes.offline.validate import SCENE_NAME, OfflineFormatError, examples
 from orgnav_jax.scenes.sceneset import NO_ACTION, UNREACHABLE, SceneSet
 from orgnav_jax.scenes.storage import is_scene_set, save
@@ -55,8 +56,11 @@ def scene_folders(offline_dir: str | os.PathLike, names=None) -> list[Path]:
                                      f"(found {len(found)}: {examples(found)})")
         return [found[n] for n in names]
     if not found:
+        other = [p.name for p in root.iterdir() if (p / files.GRAPH_FILE).is_file()]
+        hint = (f"; folders {examples(other)} hold {files.GRAPH_FILE}: give their splits "
+                "and room types with --splits FILE.json") if other else ""
         raise OfflineFormatError(f"{root}: no FloorPlanN scene folders (each holding "
-                                 f"{files.GRAPH_FILE}, {files.GRID_FILE}, ...)")
+                                 f"{files.GRAPH_FILE}, {files.GRID_FILE}, ...){hint}")
     return sorted(found.values(), key=lambda p: p.name)
 
 
@@ -89,11 +93,14 @@ def _expert(next_state, visible, valid):
 
 def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_file=None,
                    detection_rows=None, unknown_types: str = "ignore",
-                   unmatched_edges: str = "error", progress: bool = False
-                   ) -> tuple[SceneSet, dict]:
+                   unmatched_edges: str = "error", progress: bool = False,
+                   splits=None, only_listed: bool = False) -> tuple[SceneSet, dict]:
     """Offline scene folders -> (SceneSet of numpy arrays, report).
 
     scenes: folder names to import (default all FloorPlanN under offline_dir).
+    splits: a JSON file, room (folder) name -> split (or {"split", "room_type"}), for
+      rooms that do not follow the authors' FloorPlan numbering (offline/splits.py);
+      only_listed: import only the rooms it names (default: it must name every one).
     detection_file: detection hdf5 name (default: first of files.DETECTION_FILES found).
     detection_rows: which rows are the 22 categories (features_io.detection_rows); needed
       when the detection datasets do not have exactly 22 rows.
@@ -108,9 +115,13 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
         if value not in allowed:
             raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
     t0 = time.perf_counter()
-    folders = scene_folders(offline_dir, scenes)
+    if splits is None:
+        folders, assigned, custom = scene_folders(offline_dir, scenes), {}, {}
+    else:
+        folders, assigned, custom = assign_splits(offline_dir, splits, scenes, only_listed)
     with tqdm(folders, desc="scene graphs", disable=not progress) as bar:  # closed on errors
-        graphs: list[SceneGraph] = [read_scene(f, unknown_types, unmatched_edges) for f in bar]
+        graphs: list[SceneGraph] = [read_scene(f, unknown_types, unmatched_edges,
+                                               assigned.get(f.name)) for f in bar]
     graphs.sort(key=lambda g: (g.room_type, g.split, g.number))
     numbers = [g.number for g in graphs]
     if len(set(numbers)) != len(numbers):
@@ -163,6 +174,10 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
         info=(("format", FORMAT_NAME), ("version", FORMAT_VERSION), ("preset", "offline"),
               ("source", str(Path(offline_dir).resolve())),
               ("detection_file", det_paths[0].name)))
+    if splits is not None:  # custom names first: validate's messages use scene_names
+        out = out.replace(info=out.info + (("splits", str(Path(splits).resolve())),) + (
+            (("room_names", tuple(custom.values())), ("room_name_ids", tuple(custom)))
+            if custom else ()))
     out.validate(str(offline_dir))
     opt = [r["optimal_action"] for r in per_scene if "optimal_action" in r]
     report = {

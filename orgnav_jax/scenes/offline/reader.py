@@ -143,13 +143,17 @@ def _authors_actions(path: Path, keys: list[str], index: dict[str, int], unknown
     return out
 
 
-def read_scene(folder: Path, unknown_types: str = "ignore", unmatched_edges: str = "error"
-               ) -> SceneGraph:
+def read_scene(folder: Path, unknown_types: str = "ignore", unmatched_edges: str = "error",
+               assignment: tuple[int, int, int] | None = None) -> SceneGraph:
     """Parse and cross-check graph.json, grid.json, the visibility map and (when present)
-    optimal_action.json of one FloorPlanN folder."""
+    optimal_action.json of one FloorPlanN folder. assignment: (scene_id, room type,
+    split) from a splits file (splits.py), for any folder name; default: from N."""
     folder = Path(folder)
-    number = floorplan_number(folder.name, str(folder))
-    room_type, split = room_type_and_split(number, str(folder))
+    if assignment is not None:
+        number, room_type, split = assignment
+    else:
+        number = floorplan_number(folder.name, str(folder))
+        room_type, split = room_type_and_split(number, str(folder))
     graph_path = folder / files.GRAPH_FILE
     raw_keys, pairs, directed = _graph_keys_and_edges(graph_path)
     raw_pose = parse_keys(raw_keys, str(graph_path))
