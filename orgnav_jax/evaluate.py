@@ -31,14 +31,17 @@ from orgnav_jax.episodes import (
     save_episodes,
 )
 from orgnav_jax.safe_write import check_output_file, write_text_atomic
-from orgnav_jax.scenes import SceneSet, load_scenes
+from orgnav_jax.scenes import SceneSet
+from orgnav_jax.scenes.cache import device_split
 
 POLICIES = {"random": evaluation.random_policy, "expert": evaluation.expert_policy}
 
 
 def split_scenes(preset: str, scenes_dir: str | None, split: str, seed: int = 0) -> SceneSet:
-    """One split of a saved SceneSet directory, or of the cached preset, on device."""
-    return load_scenes(preset, seed, scenes_dir).split_view(split).to_device()
+    """One split of a saved SceneSet directory, or of the cached preset, on device: the
+    set is memory-mapped and only that split's rooms are read; a process that already
+    holds the split on device (training, then testing) reuses it (scenes.cache)."""
+    return device_split(preset, seed, scenes_dir, split)
 
 
 def episode_set(scenes: SceneSet, split: str, episodes_file: str | None, seed: int,

@@ -1,12 +1,13 @@
-"""Scene data: the procedural benchmark, the padded SceneSet, expert tables.
+"""Scene data: the procedural benchmark, the flat (unpadded) SceneSet, expert tables.
 
 Notebook API::
 
     from orgnav_jax import scenes
     s = scenes.build("small", seed=0)      # SceneSet of numpy arrays
     scenes.save(s, "data/small")
-    s = scenes.load("data/small")
-    train = s.split_view("train")
+    s = scenes.load("data/small", mmap=True)   # memory-mapped: nothing read yet
+    train = s.split_view("train")          # only the train rooms' states (a view)
+    dev = train.to_device()
 """
 
 from orgnav_jax.scenes.builder import build
@@ -16,10 +17,12 @@ from orgnav_jax.scenes.layout import Room, generate_room, render_ascii
 from orgnav_jax.scenes.presets import PRESETS, ScenePreset, get_preset
 from orgnav_jax.scenes.sceneset import NO_ACTION, UNREACHABLE, SceneSet
 from orgnav_jax.scenes.storage import disk_size, load, save
-from orgnav_jax.scenes.cache import load_or_build, load_scenes
+from orgnav_jax.scenes.cache import device_split, load_or_build, load_scenes
+from orgnav_jax.scenes.quantize import quantize_features
 
 __all__ = [
     "build", "load", "save", "load_or_build", "load_scenes", "disk_size", "SceneSet", "ScenePreset",
     "PRESETS", "get_preset", "expert_tables", "generate_room", "render_ascii", "Room",
     "decode_global", "decode_appearance", "gather_features", "UNREACHABLE", "NO_ACTION",
+    "device_split", "quantize_features",
 ]
