@@ -48,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
                    "is replaced atomically)")
     c.add_argument("--features", choices=("float16", "int8"), help="feature storage "
                    "(default: keep): int8 stores them with a per-channel scale")
+    c.add_argument("--json", action="store_true", help="also print the summary as JSON")
     offline_cli.add_parsers(sub)
     args = parser.parse_args(argv)
 

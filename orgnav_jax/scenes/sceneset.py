@@ -23,6 +23,7 @@ from __future__ import annotations
 
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
@@ -163,15 +164,17 @@ class SceneSet:
         return self.select(np.asarray(self.room_type) == ROOM_TYPES.index(name))
 
     def to_device(self) -> "SceneSet":
-        """Every array as a jax.Array, each put on the device once. Read-only numpy
-        arrays (a memory-mapped set) may be aliased rather than copied where the backend
-        allows it (the CPU); writable ones are copied, so later writes to them never
-        reach the device arrays."""
+        """Every array as a jax.Array, each put on the device once (jax.Arrays are kept).
+        Read-only numpy arrays (a memory-mapped set or its views) go through
+        jax.device_put, which on the CPU aliases suitably aligned host memory instead of
+        copying it: the device array is the map itself. Writable arrays are copied
+        (jnp.asarray), so later writes to them never reach the device arrays (device_put
+        aliases those too, whatever may_alias says, in jax 0.10)."""
         def put(x):
             if isinstance(x, jax.Array):
                 return x
             x = np.asarray(x)
-            return jax.device_put(x, may_alias=not x.flags.writeable)
+            return jnp.asarray(x) if x.flags.writeable else jax.device_put(x)
         return jax.tree_util.tree_map(put, self)
 
     def validate(self, source: str = "SceneSet") -> None:
