@@ -269,10 +269,11 @@ def test_stored_global_codes_follow_state_order(tiny_scenes):
                      and room.reachable[a, b] for a, b in ahead):
                 far.append(s)
         assert len(close) > 5 and len(far) > 5, sid
-        wall_close = g[rows.start + np.asarray(close), ..., GLOBAL_CH["wall"]].astype(np.float32).mean()
-        wall_far = g[rows.start + np.asarray(far), ..., GLOBAL_CH["wall"]].astype(np.float32).mean()
-        depth_close = g[rows.start + np.asarray(close), ..., GLOBAL_CH["depth"]].astype(np.float32).mean()
-        depth_far = g[rows.start + np.asarray(far), ..., GLOBAL_CH["depth"]].astype(np.float32).mean()
+        close, far = rows.start + np.asarray(close), rows.start + np.asarray(far)  # flat
+        wall_close = g[close, ..., GLOBAL_CH["wall"]].astype(np.float32).mean()
+        wall_far = g[far, ..., GLOBAL_CH["wall"]].astype(np.float32).mean()
+        depth_close = g[close, ..., GLOBAL_CH["depth"]].astype(np.float32).mean()
+        depth_far = g[far, ..., GLOBAL_CH["depth"]].astype(np.float32).mean()
         assert wall_close > wall_far + 0.2, (sid, wall_close, wall_far)
         assert depth_close < depth_far, (sid, depth_close, depth_far)
 

@@ -202,6 +202,36 @@ def test_split_view_of_a_memory_mapped_set_holds_only_its_rooms(tiny_scenes, sav
     assert total == full.num_states
 
 
+def _resident_kb(file) -> int | None:
+    """kB of `file` mapped and resident in this process (/proc/self/smaps), None if the
+    system does not tell."""
+    try:
+        lines = open("/proc/self/smaps").read().splitlines()
+    except OSError:
+        return None
+    total, inside = 0, False
+    for line in lines:
+        if "-" in line.split(" ")[0] and len(line.split()) >= 5:     # a mapping's header
+            inside = line.split()[-1] == str(file)
+        elif inside and line.startswith("Rss:"):
+            total += int(line.split()[1])
+    return total
+
+
+def test_loading_memory_mapped_reads_features_without_keeping_them(saved_tiny):
+    """Validation streams every feature through the map (finiteness) and releases the
+    pages: after load(mmap=True) the features are not resident in the process."""
+    file = (saved_tiny / "global_feat.npy").resolve()
+    full = S.load(saved_tiny, mmap=True)
+    kb = _resident_kb(file)
+    if kb is None:
+        pytest.skip("no /proc/self/smaps")
+    assert full.global_feat.nbytes > 40e6
+    assert kb * 1024 < 0.05 * full.global_feat.nbytes, kb
+    np.asarray(full.split_view("val").global_feat).sum()    # reading a view maps it in
+    assert _resident_kb(file) * 1024 < 0.5 * full.global_feat.nbytes
+
+
 def test_a_scattered_selection_gathers_only_its_rows(saved_tiny):
     full = S.load(saved_tiny, mmap=True)
     v = full.room_type_view("kitchen")                 # one room of each split: 3 runs

@@ -115,9 +115,12 @@ def _mapping(arr: np.ndarray):
 def release_pages(arr, lo: int = 0, hi: int | None = None) -> None:
     """Drop the resident pages of bytes lo..hi of a memory-mapped array from this
     process (madvise MADV_DONTNEED: the data stays in the page cache and is read back on
-    the next access). No-op for arrays that are not memory maps."""
+    the next access). No-op for arrays that are not read-only memory maps (a writable
+    private map would lose its changes)."""
     arr = np.asarray(arr) if not isinstance(arr, np.ndarray) else arr
-    found = _mapping(arr) if hasattr(mmap, "MADV_DONTNEED") else None
+    if arr.flags.writeable or not hasattr(mmap, "MADV_DONTNEED"):
+        return
+    found = _mapping(arr)
     if found is None or arr.size == 0:
         return
     mm, start = found

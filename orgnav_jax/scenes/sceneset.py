@@ -43,7 +43,7 @@ SCALE_OF = {"global_feat": "global_scale", "appearance": "appearance_scale"}
 @struct.dataclass
 class SceneSet:
     """N scenes, T states on one flat axis (see the module docstring)."""
-    next_state: jax.Array      # (T, A) int32 successor, a global flat index; a failed move stays put
+    next_state: jax.Array      # (T, A) int32 successor (global flat index); failed move: stays
     pose: jax.Array            # (T, 4) float32 x, z (m), rotation (deg), horizon (deg)
     visible: jax.Array         # (T, C) bool: category c in view and within 1.5 m
     present: jax.Array         # (N, C) bool: the scene has category c

@@ -8,11 +8,12 @@ The estimates count the large arrays a chunk holds at once: the runner state in 
 (parameters, Adam moments, each env's visited-state trail of max_steps + 1 states), the
 rollout's trajectory (num_envs x rollout_len steps), the loss's activations over those
 steps and the scene arrays a run puts on the device (its train and val rooms only: the
-SceneSet is flat and memory-mapped, so the test rooms are never loaded). They are calibrated against XLA's own figure for the
-compiled chunk (memory_analysis; docs/training.md: within a factor 1.2-1.7, above it)
-and are meant to catch configurations that cannot fit at all (max_steps 1e9 asks for
-most of a terabyte), not to predict the peak to the byte: the check fails only when the
-estimate exceeds twice the available memory, and prints a note when it exceeds it.
+SceneSet is flat and memory-mapped, so the test rooms are never loaded). They are
+calibrated against XLA's own figure for the compiled chunk (memory_analysis;
+docs/training.md: within a factor 1.2-1.7, above it) and are meant to catch
+configurations that cannot fit at all (max_steps 1e9 asks for most of a terabyte), not
+to predict the peak to the byte: the check fails only when the estimate exceeds twice
+the available memory, and prints a note when it exceeds it.
 The process's fixed overhead (JAX, compiled code, ~1 GB on CPU) is not counted.
 """
 
