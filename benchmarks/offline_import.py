@@ -44,12 +44,12 @@ def _child_import(src: str, out: str) -> None:
     t0 = time.perf_counter()
     scenes.save(s, out)
     save_s = time.perf_counter() - t0
-    arrays = [getattr(s, f) for f in ("next_state", "state_valid", "pose", "visible", "dist",
+    arrays = [getattr(s, f) for f in ("next_state", "pose", "visible", "dist",
                                       "expert_action", "det_box", "det_conf", "appearance",
                                       "global_feat", "present", "targets")]
     print(json.dumps({"import_s": round(import_s, 2), "save_s": round(save_s, 2),
                       "phases": report["seconds"], "states": report["states"],
-                      "padded_states": report["padded_states"], "scenes": report["num_scenes"],
+                      "max_states": report["max_states"], "scenes": report["num_scenes"],
                       "optimal_action": report["optimal_action"],
                       "output_mb": round(sum(np.asarray(a).nbytes for a in arrays) / 2**20, 1)}))
 
@@ -100,7 +100,7 @@ def main() -> None:
 
     row = {
         "preset": "paper", "rooms_per_type": args.rooms, "scenes": imp["scenes"],
-        "states": imp["states"], "padded_states": imp["padded_states"],
+        "states": imp["states"], "max_states": imp["max_states"],
         "build_s": exp["build_s"], "export_s": exp["seconds"],
         "export_peak_rss_mb": round(exp_rss),
         "offline_mb": round(offline_mb, 1), "import_s": imp["import_s"],

@@ -101,7 +101,7 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
     from orgnav_jax import env, evaluation
     from orgnav_jax.episodes import is_episode_file, load_episodes, sample_episodes, \
         save_episodes
-    from orgnav_jax.scenes import load_scenes
+    from orgnav_jax.scenes.cache import device_split
     if split not in ("train", "val", "test"):
         raise UserError(f"split {split!r}: expected train, val or test")
     if per_room_type < 1:
@@ -118,8 +118,9 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
     if not episodes:      # a sampled set is saved beside the results
         check_output_file(ep_out, is_episode_file, EPISODE_FILE,
                           option="the episode file beside --out")
-    scenes = load_scenes(loaded.scene_preset, loaded.scene_seed, scenes_dir) \
-        .split_view(split).to_device()
+    # the split on device, once per process (shared with training in the same process);
+    # the set is memory-mapped and only this split's rooms are read
+    scenes = device_split(loaded.scene_preset, loaded.scene_seed, scenes_dir, split)
     if episodes:
         episode_set, ep_path = load_episodes(episodes, scenes), Path(episodes)
         if len(episode_set) == 0:

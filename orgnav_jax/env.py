@@ -7,6 +7,11 @@
 `scenes` is a SceneSet (usually one split's view, moved to device); `params` is a static
 EnvParams. All shapes below are per environment; vmap adds the batch axis in front.
 
+State indices: EnvState.state, its trail and Observation.state are GLOBAL indices into
+the SceneSet's flat state axis (the per-state arrays are indexed by them directly);
+episodes are given and sampled with a room's LOCAL start index (as episode files store
+it), converted by start_episode: global = scenes.state_offset[scene] + local.
+
 Path lengths count the moving actions (MoveAhead, Rotate*, Look*), not the final Done:
 an episode's L is its number of non-Done steps and L_opt = scenes.dist at the start, so
 the expert has L = L_opt and SPL 1.
@@ -43,21 +48,22 @@ class EnvParams:
 @struct.dataclass
 class EnvState:
     scene: jax.Array        # () int32 index into the SceneSet
-    state: jax.Array        # () int32 state index in that scene
+    state: jax.Array        # () int32 GLOBAL flat state index (a state of that scene)
     target: jax.Array       # () int32 category index
     steps: jax.Array        # () int32 actions taken this episode (Done included)
     path_len: jax.Array     # () int32 non-Done actions taken
     prev_action: jax.Array  # () int32, -1 at episode start
     last_failed: jax.Array  # () bool: the last action left the agent where it was
     revisited: jax.Array    # () bool: the current state was visited before this episode
-    trail: jax.Array        # (T+1,) int32 states visited this episode, -1 beyond; T = max cap
+    trail: jax.Array        # (T+1,) int32 global states visited this episode, -1 beyond;
+                            #   T = max cap
     optimal_len: jax.Array  # () int32 shortest path length at the start
 
 
 @struct.dataclass
 class Observation:
-    scene: jax.Array        # () int32: with `state`, the index of the large features
-    state: jax.Array        # () int32
+    scene: jax.Array        # () int32 scene index
+    state: jax.Array        # () int32 global flat state: the index of the large features
     det_box: jax.Array      # (C, 4) float32 box in pixels (x1, y1, x2, y2), 0 if none
     det_conf: jax.Array     # (C,) float32 confidence, 0 = no detection
     target: jax.Array       # (C,) float32 one-hot target category
@@ -69,8 +75,8 @@ def observe(state: EnvState, scenes: SceneSet) -> Observation:
     """The observation of an EnvState (gathers the small per-state arrays)."""
     return Observation(
         scene=state.scene, state=state.state,
-        det_box=scenes.det_box[state.scene, state.state].astype(jnp.float32),
-        det_conf=scenes.det_conf[state.scene, state.state].astype(jnp.float32),
+        det_box=scenes.det_box[state.state].astype(jnp.float32),
+        det_conf=scenes.det_conf[state.state].astype(jnp.float32),
         target=jax.nn.one_hot(state.target, NUM_CATEGORIES),
         prev_action=jax.nn.one_hot(state.prev_action, NUM_ACTIONS),
         deadlock=state.last_failed | state.revisited,
@@ -93,7 +99,8 @@ def check_action(action) -> None:
 
 
 def check_episode(scene, start, target, scenes: SceneSet) -> None:
-    """Eager calls: clear errors for a scene, start state or target the SceneSet lacks."""
+    """Eager calls: clear errors for a scene, (local) start state or target the SceneSet
+    lacks."""
     if not all(_concrete(x) for x in (scene, start, target)):
         return
     n, s, c = (int(np.asarray(x)) for x in (scene, start, target))
@@ -112,23 +119,25 @@ def check_episode(scene, start, target, scenes: SceneSet) -> None:
 
 def start_episode(scene: jax.Array, start: jax.Array, target: jax.Array,
                   scenes: SceneSet, params: EnvParams) -> EnvState:
-    """The EnvState at the start of a given episode (scene, start state, target).
+    """The EnvState at the start of a given episode (scene, LOCAL start state index in
+    that room, as in an EpisodeSet, target); EnvState.state is the global flat index.
 
     The visited set is a trail of at most max(params.max_steps) + 1 states: far smaller
     than a bitset over S, and an any() over it is cheap.
     """
     check_episode(scene, start, target, scenes)
-    trail = jnp.full(max(params.max_steps) + 1, -1, jnp.int32).at[0].set(start)
+    state = (scenes.state_offset[scene] + start).astype(jnp.int32)
+    trail = jnp.full(max(params.max_steps) + 1, -1, jnp.int32).at[0].set(state)
     return EnvState(
-        scene=scene, state=start, target=target, steps=jnp.int32(0), path_len=jnp.int32(0),
+        scene=scene, state=state, target=target, steps=jnp.int32(0), path_len=jnp.int32(0),
         prev_action=jnp.int32(-1), last_failed=jnp.bool_(False), revisited=jnp.bool_(False),
         trail=trail,
-        optimal_len=scenes.dist[scene, start, target].astype(jnp.int32),
+        optimal_len=scenes.dist[state, target].astype(jnp.int32),
     )
 
 
 def sample_episode(key: jax.Array, scenes: SceneSet, params: EnvParams):
-    """A random (scene, start, target) -> three () int32.
+    """A random (scene, local start, target) -> three () int32 (start_episode's inputs).
 
     A scene uniformly; START_TRIES start states uniformly among its states, keeping the
     first from which some valid target is at least params.min_start_dist away; a target
@@ -142,7 +151,7 @@ def sample_episode(key: jax.Array, scenes: SceneSet, params: EnvParams):
     starts = (bits[1:START_TRIES + 1] % scenes.state_count[scene].astype(jnp.uint32)
               ).astype(jnp.int32)                                          # (T,)
     valid = scenes.targets[scene]                                          # (C,)
-    far = scenes.dist[scene, starts] >= params.min_start_dist              # (T, C)
+    far = scenes.dist[scenes.state_offset[scene] + starts] >= params.min_start_dist  # (T, C)
     ok = valid[None] & far
     has = ok.any(1)
     pick = jnp.where(has.any(), jnp.argmax(has), START_TRIES - 1)
@@ -163,9 +172,9 @@ def _transition(state: EnvState, action: jax.Array, scenes: SceneSet, params: En
     """One action -> (new state, reward, done, info); see step_env."""
     check_action(action)
     action = jnp.clip(jnp.asarray(action, jnp.int32), 0, NUM_ACTIONS - 1)
-    nxt = scenes.next_state[state.scene, state.state, action]
+    nxt = scenes.next_state[state.state, action]
     is_done = action == DONE
-    success = is_done & scenes.visible[state.scene, state.state, state.target]
+    success = is_done & scenes.visible[state.state, state.target]
     failed = (nxt == state.state) & ~is_done
     steps = state.steps + 1
     cap = jnp.asarray(params.max_steps, jnp.int32)[scenes.room_type[state.scene]]

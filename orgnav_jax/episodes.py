@@ -1,8 +1,10 @@
 """Fixed, seeded evaluation episodes: sample, save to JSON, load and check against scenes.
 
 An EpisodeSet indexes one SceneSet (usually a split view): episode e starts in scene
-`scene[e]` at state `start[e]` looking for category `target[e]`. On disk, episodes are
-stored in the authors' form (scene name, goal_object_type, state key) plus
+`scene[e]` at state `start[e]` looking for category `target[e]`. `start` is the room's
+LOCAL state index (0..state_count-1), independent of how the SceneSet lays its rooms out;
+env.start_episode turns it into the global flat index (state_offset[scene] + start). On
+disk, episodes are stored in the authors' form (scene name, goal_object_type, state key) plus
 `optimal_len`, so a file names rooms and poses, never array indices:
 
     {"format": "orgnav_jax.episodes/1", "split": "test", "seed": 0, "scenes": {...},
@@ -65,8 +67,9 @@ def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYP
     rng = np.random.default_rng(seed)
     room_type = np.asarray(scenes.room_type)
     counts = np.asarray(scenes.state_count)
+    offsets = np.asarray(scenes.state_offset)
     targets = np.asarray(scenes.targets)
-    dist = np.asarray(scenes.dist)
+    dist = np.asarray(scenes.dist)                     # (T, C)
     out = {k: [] for k in ("scene", "start", "target", "optimal_len", "room_type")}
     for t in range(len(ROOM_TYPES)):
         of_type = np.flatnonzero(room_type == t)
@@ -77,7 +80,7 @@ def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYP
         while made < per_room_type:
             n = int(rng.choice(of_type))
             s = int(rng.integers(counts[n]))
-            d = dist[n, s].astype(np.int64)
+            d = dist[offsets[n] + s].astype(np.int64)
             ok = np.flatnonzero(targets[n] & (d >= min_dist) & (d < UNREACHABLE))
             if ok.size == 0:
                 continue
@@ -94,8 +97,7 @@ def _check_sampleable(scenes: SceneSet, of_type: np.ndarray, room: str, min_dist
     """ValueError unless some scene in `of_type` has a start state with a valid target at
     distance >= min_dist (else sampling that room type would never end)."""
     for n in of_type:
-        count = int(np.asarray(scenes.state_count)[n])
-        d = np.asarray(scenes.dist[n])[:count]
+        d = np.asarray(scenes.dist[scenes.state_slice(n)])
         if ((d >= min_dist) & (d < UNREACHABLE) & np.asarray(scenes.targets[n])[None]).any():
             return
     names = ", ".join(scenes.scene_names[n] for n in of_type[:5])
@@ -108,9 +110,9 @@ def _check_sampleable(scenes: SceneSet, of_type: np.ndarray, room: str, min_dist
 def to_records(episodes: EpisodeSet, scenes: SceneSet) -> list[dict]:
     """Episodes in the authors' JSON form (plus optimal_len)."""
     names = scenes.scene_names
-    pose = np.asarray(scenes.pose)
+    pose, offsets = np.asarray(scenes.pose), np.asarray(scenes.state_offset)
     return [{"scene": names[n], "goal_object_type": CATEGORIES[c],
-             "state": state_key(pose[n, s]), "optimal_len": int(L)}
+             "state": state_key(pose[offsets[n] + s]), "optimal_len": int(L)}
             for n, s, c, L in zip(episodes.scene, episodes.start, episodes.target,
                                   episodes.optimal_len)]
 
@@ -127,6 +129,7 @@ def from_records(records: list[dict], scenes: SceneSet, source: str = "episodes"
         raise ValueError(f"on_unreachable must be 'error' or 'skip', got {on_unreachable!r}")
     names = {name: i for i, name in enumerate(scenes.scene_names)}
     pose, counts = np.asarray(scenes.pose), np.asarray(scenes.state_count)
+    offsets = np.asarray(scenes.state_offset)
     dist, targets = np.asarray(scenes.dist), np.asarray(scenes.targets)
     room_type = np.asarray(scenes.room_type)
     index_cache: dict[int, dict[str, int]] = {}
@@ -148,12 +151,14 @@ def from_records(records: list[dict], scenes: SceneSet, source: str = "episodes"
             c = category_index(rec["goal_object_type"])
         except ValueError as err:
             raise ValueError(f"{where}: {err}") from None
-        keys = index_cache.setdefault(n, key_index(pose[n], counts[n]))
+        if n not in index_cache:
+            index_cache[n] = key_index(pose[offsets[n]:offsets[n] + counts[n]], counts[n])
+        keys = index_cache[n]
         if rec["state"] not in keys:
             raise ValueError(f"{where}: state {rec['state']!r} is not a state of "
                              f"{rec['scene']}; was the file made for other scenes?")
         s = keys[rec["state"]]
-        d = int(dist[n, s, c])
+        d = int(dist[offsets[n] + s, c])
         if d >= UNREACHABLE or not targets[n, c]:
             if on_unreachable == "skip":
                 skipped += 1

@@ -68,7 +68,7 @@ def expert_policy() -> Policy:
     """The shortest-path expert: scenes.expert_action for the observed target."""
     def act(_, carry, obs, key, scenes, fresh):
         target = jnp.argmax(obs.target, axis=-1)
-        return scenes.expert_action[obs.scene, obs.state, target].astype(jnp.int32), carry
+        return scenes.expert_action[obs.state, target].astype(jnp.int32), carry
     return Policy("Expert", lambda batch, _: (), act)
 
 

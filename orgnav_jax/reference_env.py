@@ -32,13 +32,13 @@ class ReferenceScene:
 
     @classmethod
     def from_sceneset(cls, scenes, n: int) -> ReferenceScene:
-        count = int(np.asarray(scenes.state_count)[n])
-        pose = np.asarray(scenes.pose)[n, :count]
-        vis = np.asarray(scenes.visible)[n, :count]
+        rows = scenes.state_slice(n)         # the scene's states on the flat axis
+        pose = np.asarray(scenes.pose[rows])
+        vis = np.asarray(scenes.visible[rows])
         keys = [state_key(p) for p in pose]
         visible = {k: {CATEGORIES[c] for c in np.flatnonzero(v)} for k, v in zip(keys, vis)}
-        box = np.asarray(scenes.det_box)[n, :count].astype(np.float32)
-        conf = np.asarray(scenes.det_conf)[n, :count].astype(np.float32)
+        box = np.asarray(scenes.det_box[rows]).astype(np.float32)
+        conf = np.asarray(scenes.det_conf[rows]).astype(np.float32)
         detections = {k: (b, c) for k, b, c in zip(keys, box, conf)}
         return cls(scenes.scene_names[n], ROOM_TYPES[int(np.asarray(scenes.room_type)[n])],
                    keys, visible, detections)

@@ -174,38 +174,47 @@ def _set(path: Path, field: str, fn) -> None:
     np.save(path / f"{field}.npy", arr)
 
 
+def _flat(path: Path, n: int, s: int) -> int:
+    """The flat index of scene n's local state s in a saved set."""
+    return int(np.load(path / "state_offset.npy")[n]) + s
+
+
 def _nan_appearance(path):
-    _set(path, "appearance", lambda a: a.__setitem__((1, 7, CATEGORIES.index("Sink"), 2),
-                                                     np.nan))
+    t = _flat(path, 1, 7)
+    _set(path, "appearance", lambda a: a.__setitem__((t, CATEGORIES.index("Sink"), 2), np.nan))
 
 
 def _inf_global(path):
-    _set(path, "global_feat", lambda a: a.__setitem__((0, 5, 3, 4, 1), np.inf))
+    t = _flat(path, 0, 5)
+    _set(path, "global_feat", lambda a: a.__setitem__((t, 3, 4, 1), np.inf))
 
 
 def _action_9(path):
-    _set(path, "expert_action", lambda a: a.__setitem__((0, 2, CATEGORIES.index("Sink")), 9))
+    t = _flat(path, 0, 2)
+    _set(path, "expert_action", lambda a: a.__setitem__((t, CATEGORIES.index("Sink")), 9))
 
 
 def _disagree(path):
     """Replace one expert action (dist > 0) by a move that does not shorten the path."""
-    dist = np.load(path / "dist.npy").astype(np.int64)
+    dist = np.load(path / "dist.npy").astype(np.int64)       # (T, C), flat
     act = np.load(path / "expert_action.npy")
-    nxt = np.load(path / "next_state.npy")
+    nxt = np.load(path / "next_state.npy")                   # global flat indices
     c = CATEGORIES.index("Sink")
     for s in range(int(np.load(path / "state_count.npy")[0])):
-        d = dist[0, s, c]
+        t = _flat(path, 0, s)
+        d = dist[t, c]
         if 0 < d < UNREACHABLE:
-            wrong = [m for m in range(DONE) if dist[0, nxt[0, s, m], c] != d - 1]
+            wrong = [m for m in range(DONE) if dist[nxt[t, m], c] != d - 1]
             if wrong:
-                act[0, s, c] = wrong[0]
+                act[t, c] = wrong[0]
                 np.save(path / "expert_action.npy", act)
                 return s
     raise AssertionError("no state to corrupt")
 
 
 def _next_out_of_range(path):
-    _set(path, "next_state", lambda a: a.__setitem__((1, 4, 0), 10_000))
+    t = _flat(path, 1, 4)
+    _set(path, "next_state", lambda a: a.__setitem__((t, 0), 10_000))
 
 
 CORRUPT = {
@@ -219,9 +228,10 @@ CORRUPT = {
     "dist-expert-disagree": (_disagree, r"fields 'expert_action' and 'dist' disagree at "
                              r"scene 0 \(FloorPlan401\) state \d+ target Sink: dist \d+, "
                              r"expert_action \w+ leads to state \d+ at dist \d+; expected \d+"),
-    "next_state-out-of-range": (_next_out_of_range, r"field 'next_state' holds indices "
-                                r"outside \[0, 128\): 10000 at scene 1 \(FloorPlan422\) "
-                                r"state 4 action MoveAhead"),
+    "next_state-out-of-range": (_next_out_of_range, r"field 'next_state' holds 10000 at "
+                                r"scene 1 \(FloorPlan422\) state 4 action MoveAhead; "
+                                r"expected a state of that scene \(flat indices "
+                                r"\d+\.\.\d+\)"),
 }
 
 

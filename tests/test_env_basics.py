@@ -21,10 +21,12 @@ def test_reset_samples_valid_episodes(train):
     params = env.EnvParams()
     keys = jax.random.split(jax.random.PRNGKey(0), 256)
     _, st = jax.vmap(env.reset, in_axes=(0, None, None))(keys, train, params)
-    scene, start, target = map(np.asarray, (st.scene, st.state, st.target))
+    scene, state, target = map(np.asarray, (st.scene, st.state, st.target))
     assert np.asarray(train.targets)[scene, target].all()
-    assert (start < np.asarray(train.state_count)[scene]).all()
-    d = np.asarray(train.dist)[scene, start, target]
+    start = state - np.asarray(train.state_offset)[scene]    # EnvState.state is global
+    assert ((start >= 0) & (start < np.asarray(train.state_count)[scene])).all()
+    np.testing.assert_array_equal(train.state_scene[state], scene)
+    d = np.asarray(train.dist)[state, target]
     assert (d >= 1).all() and (d < UNREACHABLE).all()
     np.testing.assert_array_equal(np.asarray(st.optimal_len), d)
     assert len(np.unique(scene)) == train.num_scenes  # every training room is drawn
@@ -34,13 +36,14 @@ def test_failed_move_and_revisit_are_deadlocks(train):
     params = env.EnvParams()
     nxt = np.asarray(train.next_state)
     n = 0
-    blocked = np.flatnonzero(nxt[n, : int(train.state_count[n]), K.MOVE_AHEAD]
-                             == np.arange(int(train.state_count[n])))
-    start = int(blocked[0])
+    rows = train.state_slice(n)
+    blocked = np.flatnonzero(nxt[rows, K.MOVE_AHEAD] == np.arange(rows.start, rows.stop))
+    start = int(blocked[0])                   # local index (as in an episode)
     target = int(np.flatnonzero(np.asarray(train.targets[n]))[0])
     st = env.start_episode(jnp.int32(n), jnp.int32(start), jnp.int32(target), train, params)
     obs, st, reward, done, info = env.step_env(st, K.MOVE_AHEAD, train, params)
     assert bool(info["failed"]) and bool(obs.deadlock) and not bool(done)
+    assert int(st.state) == rows.start + start
     assert float(reward) == pytest.approx(params.step_penalty)
     # rotate left then right: back in a visited state -> revisit deadlock, not a failure
     obs, st, *_ = env.step_env(st, K.ROTATE_LEFT, train, params)
@@ -68,7 +71,7 @@ def test_expert_reaches_every_target_with_spl_one(train):
     def run(st):
         def body(carry, _):
             st, done, success, length = carry
-            a = train.expert_action[st.scene, st.state, st.target].astype(jnp.int32)
+            a = train.expert_action[st.state, st.target].astype(jnp.int32)
             _, st2, _, d, info = env.step_env(st, a, train, params)
             keep = lambda new, old: jnp.where(done, old, new)  # noqa: E731
             return (jax.tree_util.tree_map(keep, st2, st), done | d,

@@ -36,7 +36,8 @@ def test_jax_env_agrees_with_reference_step_by_step(scenes, reference, evaluatio
     for k in keys:
         _, st = env.reset(k, scenes, params)
         n = int(st.scene)
-        obs_r = reference.reset(scenes.scene_names[n], state_key(pose[n, int(st.state)]),
+        assert scenes.state_scene[int(st.state)] == n      # a global flat state of scene n
+        obs_r = reference.reset(scenes.scene_names[n], state_key(pose[int(st.state)]),
                                 K.CATEGORIES[int(st.target)])
         # mostly moves, some Done: episodes run long enough to hit caps and revisits
         p = np.array([0.46, 0.2, 0.2, 0.06, 0.06, 0.02])
@@ -44,7 +45,7 @@ def test_jax_env_agrees_with_reference_step_by_step(scenes, reference, evaluatio
             a = int(rng.choice(K.NUM_ACTIONS, p=p))
             obs, st, reward, done, info = step(st, jnp.int32(a), scenes, params)
             obs_r, reward_r, done_r, success_r = reference.step(a)
-            assert state_key(pose[n, int(st.state)]) == obs_r["state"]
+            assert state_key(pose[int(st.state)]) == obs_r["state"]
             assert float(reward) == pytest.approx(reward_r)
             assert bool(done) == done_r and bool(info["success"]) == success_r
             assert bool(obs.deadlock) == obs_r["deadlock"]
@@ -59,11 +60,13 @@ def test_jax_env_agrees_with_reference_step_by_step(scenes, reference, evaluatio
 
 def test_reference_successor_is_the_next_state_table(scenes, reference):
     """Recomputing successor poses from strings gives exactly the next_state table."""
-    n = 0
-    count = int(scenes.state_count[n])
-    pose, nxt = np.asarray(scenes.pose)[n], np.asarray(scenes.next_state)[n]
+    n = 1
+    rows = scenes.state_slice(n)
+    pose = np.asarray(scenes.pose)[rows]
+    nxt = np.asarray(scenes.next_state)[rows] - rows.start      # global -> the room's own
+    assert rows.start > 0 and (nxt >= 0).all() and (nxt < len(pose)).all()
     ref_scene = reference.scenes[scenes.scene_names[n]]
-    for s in range(0, count, 7):
+    for s in range(0, len(pose), 7):
         for a in range(K.NUM_ACTIONS - 1):
             assert ref_scene.successor(state_key(pose[s]), K.ACTIONS[a]) == \
                 state_key(pose[nxt[s, a]])

@@ -188,7 +188,8 @@ def test_failure_analysis_of_always_look_up_counts_failed_moves(test_split, few_
     per = _run(ALWAYS_LOOK_UP, test_split, few_episodes)
     _assert_partition(per)
     assert per["timeout"].all()
-    looking_down = np.asarray(test_split.pose)[few_episodes.scene, few_episodes.start, 3] == 30
+    flat = np.asarray(test_split.global_state(few_episodes.scene, few_episodes.start))
+    looking_down = np.asarray(test_split.pose)[flat, 3] == 30
     assert looking_down.any() and (~looking_down).any()
     np.testing.assert_array_equal(per["failed_moves"], caps - looking_down)
     np.testing.assert_array_equal(per["revisits"], 0)
@@ -202,11 +203,11 @@ def test_done_on_the_last_step_of_the_cap_is_not_a_timeout(test_split, few_episo
     _assert_partition(per)
     assert not per["timeout"].any()
     np.testing.assert_array_equal(per["steps"], DONE_AT)
-    next_state = np.asarray(test_split.next_state)
-    s = few_episodes.start.copy()
+    next_state = np.asarray(test_split.next_state)          # global flat indices
+    s = np.asarray(test_split.global_state(few_episodes.scene, few_episodes.start))
     for _ in range((DONE_AT - 1) % 8):
-        s = next_state[few_episodes.scene, s, ROTATE_LEFT]
-    visible = np.asarray(test_split.visible)[few_episodes.scene, s, few_episodes.target]
+        s = next_state[s, ROTATE_LEFT]
+    visible = np.asarray(test_split.visible)[s, few_episodes.target]
     np.testing.assert_array_equal(per["success"], visible)
     np.testing.assert_array_equal(per["wrong_done"], ~visible)
     np.testing.assert_array_equal(per["revisits"], DONE_AT - 1 - 7)

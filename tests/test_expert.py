@@ -33,57 +33,57 @@ def _bfs_dist(rev: nx.DiGraph, sources: np.ndarray) -> np.ndarray:
 
 def test_expert_matches_networkx_bfs_on_every_state(tiny_scenes):
     s = tiny_scenes
-    nxt, valid = np.asarray(s.next_state), np.asarray(s.state_valid)
+    nxt = np.asarray(s.next_state)
     vis, dist, act = np.asarray(s.visible), np.asarray(s.dist), np.asarray(s.expert_action)
+    covered = np.zeros(s.num_states, int)
     for n in range(s.num_scenes):
-        sn = int(valid[n].sum())
+        rows = s.state_slice(n)
+        covered[rows] += 1
         name = s.scene_names[n]
-        rev = _reverse_graph(nxt[n, :sn])
+        local = nxt[rows] - rows.start          # the room's graph, in its own indices
+        assert ((local >= 0) & (local < rows.stop - rows.start)).all(), name
+        rev = _reverse_graph(local)
         for c in range(K.NUM_CATEGORIES):
-            want = _bfs_dist(rev, vis[n, :sn, c])
-            got = dist[n, :sn, c].astype(np.int64)
+            want = _bfs_dist(rev, vis[rows, c])
+            got = dist[rows, c].astype(np.int64)
             reach = want >= 0
             np.testing.assert_array_equal(got[reach], want[reach], err_msg=f"{name} c={c}")
             assert (got[~reach] == scenes.UNREACHABLE).all(), f"{name} c={c}"
-            assert (act[n, :sn, c][~reach] == scenes.NO_ACTION).all(), f"{name} c={c}"
-        # padding states: unreachable, no action, never visible
-        assert (dist[n, sn:] == scenes.UNREACHABLE).all()
-        assert (act[n, sn:] == scenes.NO_ACTION).all()
-        assert not vis[n, sn:].any()
+            assert (act[rows, c][~reach] == scenes.NO_ACTION).all(), f"{name} c={c}"
+    assert (covered == 1).all()     # every flat state belongs to exactly one room
 
 
 def test_expert_actions_follow_shortest_paths(tiny_scenes):
     s = tiny_scenes
-    nxt, valid = np.asarray(s.next_state), np.asarray(s.state_valid)
-    dist = np.asarray(s.dist).astype(np.int64)
+    nxt = np.asarray(s.next_state)                       # (T, A) global flat indices
+    dist = np.asarray(s.dist).astype(np.int64)           # (T, C)
     act = np.asarray(s.expert_action).astype(np.int64)
-    N, S, C = dist.shape
-    reach = (dist < scenes.UNREACHABLE) & valid[..., None]
+    reach = dist < scenes.UNREACHABLE
     # never action 0 (MoveAhead) as a stand-in for "nothing": sentinels exactly where
     # unreachable
     assert ((act == scenes.NO_ACTION) == ~reach).all()
     assert scenes.NO_ACTION not in range(K.NUM_ACTIONS)
-    assert scenes.UNREACHABLE > S
+    assert scenes.UNREACHABLE > s.max_states
     at_goal = reach & (dist == 0)
     assert (act[at_goal] == K.DONE).all()
-    np.testing.assert_array_equal(at_goal, np.asarray(s.visible) & valid[..., None])
+    np.testing.assert_array_equal(at_goal, np.asarray(s.visible))
     moving = reach & (dist > 0)
-    n_i, s_i, c_i = np.nonzero(moving)
-    a = act[n_i, s_i, c_i]
+    s_i, c_i = np.nonzero(moving)
+    a = act[s_i, c_i]
     assert ((a >= 0) & (a < K.DONE)).all()
-    succ = nxt[n_i, s_i, a]
-    np.testing.assert_array_equal(dist[n_i, succ, c_i], dist[n_i, s_i, c_i] - 1)
+    succ = nxt[s_i, a]
+    np.testing.assert_array_equal(s.state_scene[succ], s.state_scene[s_i])  # same room
+    np.testing.assert_array_equal(dist[succ, c_i], dist[s_i, c_i] - 1)
     assert (succ != s_i).all()
     # lowest-index optimal action (documented tie-break)
     for b in range(K.DONE):
-        better = dist[n_i, nxt[n_i, s_i, b], c_i] == dist[n_i, s_i, c_i] - 1
+        better = dist[nxt[s_i, b], c_i] == dist[s_i, c_i] - 1
         assert not (better & (b < a)).any()
 
 
 def test_targets_of_room_type_mostly_reachable(tiny_scenes):
     s = tiny_scenes
     dist = np.asarray(s.dist)
-    valid = np.asarray(s.state_valid)
     ok = total = 0
     for n in range(s.num_scenes):
         rt = K.ROOM_TYPES[int(s.room_type[n])]
@@ -92,7 +92,7 @@ def test_targets_of_room_type_mostly_reachable(tiny_scenes):
             if not s.present[n, c]:
                 continue
             total += 1
-            ok += bool((dist[n, valid[n], c] < scenes.UNREACHABLE).all())
+            ok += bool((dist[s.state_slice(n), c] < scenes.UNREACHABLE).all())
     assert total > 0 and ok / total > 0.85
 
 
@@ -193,15 +193,17 @@ def test_expert_tables_compiles_once_for_same_shapes(monkeypatch):
 
 def test_targets_and_state_count_fields(tiny_scenes):
     s = tiny_scenes
-    valid = np.asarray(s.state_valid)
     counts = np.asarray(s.state_count)
-    np.testing.assert_array_equal(counts, valid.sum(1))
+    offsets = np.asarray(s.state_offset)
+    assert counts.sum() == s.num_states
+    order = np.argsort(offsets)                 # the rooms' runs tile the flat axis
+    np.testing.assert_array_equal(offsets[order], np.cumsum(counts[order]) - counts[order])
     targets = np.asarray(s.targets)
     dist = np.asarray(s.dist)
     for n in range(s.num_scenes):
         rt = K.ROOM_TYPES[int(s.room_type[n])]
         for c in range(K.NUM_CATEGORIES):
-            d = dist[n, :counts[n], c]
+            d = dist[offsets[n]:offsets[n] + counts[n], c]
             want = (K.CATEGORIES[c] in K.TARGETS[rt] and bool(s.present[n, c])
                     and bool((d < scenes.UNREACHABLE).any()))
             assert bool(targets[n, c]) == want, (s.scene_names[n], K.CATEGORIES[c])

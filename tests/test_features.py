@@ -21,11 +21,12 @@ def dev(tiny_scenes):
 
 
 def _random_states(s: scenes.SceneSet, k: int, seed: int = 0):
+    """k random states as global flat indices (a random scene, a random local state)."""
     rng = np.random.default_rng(seed)
-    counts = np.asarray(s.state_valid).sum(1)
+    counts = np.asarray(s.state_count)
     n = rng.integers(0, s.num_scenes, k)
     st = (rng.random(k) * counts[n]).astype(np.int64)
-    return n, st
+    return np.asarray(s.global_state(n, st))
 
 
 # ------------------------------------------------------------- gather_features
@@ -33,9 +34,8 @@ def test_gather_features_shapes(dev, tiny_scenes):
     preset = scenes.get_preset("tiny")
     assert tiny_scenes.global_dim == preset.global_dim
     assert tiny_scenes.appearance_dim == preset.appearance_dim
-    n, st = _random_states(tiny_scenes, 6)
-    glob, app, box, conf = scenes.gather_features(dev, jnp.asarray(n.reshape(2, 3)),
-                                                  jnp.asarray(st.reshape(2, 3)))
+    idx = _random_states(tiny_scenes, 6)
+    glob, app, box, conf = scenes.gather_features(dev, jnp.asarray(idx.reshape(2, 3)))
     G, d, C = preset.global_dim, preset.appearance_dim, K.NUM_CATEGORIES
     assert glob.shape == (2, 3, K.FEATURE_GRID, K.FEATURE_GRID, G)
     assert app.shape == (2, 3, C, d)
@@ -48,24 +48,24 @@ def test_gather_features_shapes(dev, tiny_scenes):
 
 def test_gather_features_matches_numpy_reference(dev, tiny_scenes):
     s = tiny_scenes
-    n, st = _random_states(s, 64, seed=1)
-    glob, app, box, conf = scenes.gather_features(dev, jnp.asarray(n), jnp.asarray(st))
-    code_g = np.asarray(s.global_feat)[n, st].astype(np.float32)
+    idx = _random_states(s, 64, seed=1)
+    glob, app, box, conf = scenes.gather_features(dev, jnp.asarray(idx))
+    code_g = np.asarray(s.global_feat)[idx].astype(np.float32)
     want_g = np.maximum(code_g @ np.asarray(s.global_basis), 0)
     np.testing.assert_allclose(np.asarray(glob), want_g, rtol=1e-4, atol=1e-4)
-    c = np.asarray(s.det_conf)[n, st].astype(np.float32)
-    code_a = np.asarray(s.appearance)[n, st].astype(np.float32)
+    c = np.asarray(s.det_conf)[idx].astype(np.float32)
+    code_a = np.asarray(s.appearance)[idx].astype(np.float32)
     want_a = np.maximum(np.asarray(s.appearance_proto) + code_a @ np.asarray(s.appearance_basis), 0)
     want_a = np.where((c > 0)[..., None], want_a, 0)
     np.testing.assert_allclose(np.asarray(app), want_a, rtol=1e-4, atol=1e-4)
     np.testing.assert_array_equal(np.asarray(conf), c)
     np.testing.assert_array_equal(np.asarray(box),
-                                  np.asarray(s.det_box)[n, st].astype(np.float32))
+                                  np.asarray(s.det_box)[idx].astype(np.float32))
 
 
 def test_appearance_zero_exactly_where_nothing_detected(dev, tiny_scenes):
-    n, st = _random_states(tiny_scenes, 2000, seed=2)
-    _, app, _, conf = scenes.gather_features(dev, jnp.asarray(n), jnp.asarray(st))
+    idx = _random_states(tiny_scenes, 2000, seed=2)
+    _, app, _, conf = scenes.gather_features(dev, jnp.asarray(idx))
     app, conf = np.asarray(app), np.asarray(conf)
     assert (app[conf == 0] == 0).all()
     assert (conf > 0).sum() > 50
@@ -77,9 +77,9 @@ def test_appearance_zero_exactly_where_nothing_detected(dev, tiny_scenes):
 def test_jit_equals_eager_and_traces_once(dev, tiny_scenes):
     fn = jax.jit(chex.assert_max_traces(scenes.gather_features, n=1))
     for seed in (3, 4):
-        n, st = _random_states(tiny_scenes, 32, seed=seed)
-        got = fn(dev, jnp.asarray(n), jnp.asarray(st))
-        want = scenes.gather_features(dev, jnp.asarray(n), jnp.asarray(st))
+        idx = jnp.asarray(_random_states(tiny_scenes, 32, seed=seed))
+        got = fn(dev, idx)
+        want = scenes.gather_features(dev, idx)
         for g, w in zip(got, want):
             np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-5, atol=1e-5)
 
@@ -88,12 +88,12 @@ def test_features_without_bases_are_the_stored_arrays(tiny_scenes):
     raw = tiny_scenes.replace(global_basis=None, appearance_basis=None, appearance_proto=None)
     assert raw.global_dim == tiny_scenes.global_feat.shape[-1]
     assert raw.appearance_dim == tiny_scenes.appearance.shape[-1]
-    n, st = _random_states(tiny_scenes, 8, seed=5)
-    glob, app, _, _ = scenes.gather_features(raw, jnp.asarray(n), jnp.asarray(st))
+    idx = _random_states(tiny_scenes, 8, seed=5)
+    glob, app, _, _ = scenes.gather_features(raw, jnp.asarray(idx))
     np.testing.assert_array_equal(np.asarray(glob),
-                                  np.asarray(tiny_scenes.global_feat)[n, st].astype(np.float32))
+                                  np.asarray(tiny_scenes.global_feat)[idx].astype(np.float32))
     np.testing.assert_array_equal(np.asarray(app),
-                                  np.asarray(tiny_scenes.appearance)[n, st].astype(np.float32))
+                                  np.asarray(tiny_scenes.appearance)[idx].astype(np.float32))
 
 
 def test_to_device_keeps_everything(tiny_scenes, dev):
@@ -107,7 +107,6 @@ def test_to_device_keeps_everything(tiny_scenes, dev):
 def test_detection_arrays_well_formed(tiny_scenes):
     conf = np.asarray(tiny_scenes.det_conf).astype(np.float32)
     box = np.asarray(tiny_scenes.det_box).astype(np.float32)
-    valid = np.asarray(tiny_scenes.state_valid)
     assert ((conf >= 0) & (conf <= 1)).all()
     assert ((box >= 0) & (box <= K.IMAGE_SIZE)).all()
     hit = conf > 0
@@ -116,10 +115,8 @@ def test_detection_arrays_well_formed(tiny_scenes):
     b = box[hit]
     assert (b[:, 0] <= b[:, 2]).all() and (b[:, 1] <= b[:, 3]).all()
     assert ((b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]) > 0).mean() > 0.99
-    assert not hit[~valid].any()                       # nothing on padding states
-    assert (np.asarray(tiny_scenes.appearance)[~valid] == 0).all()
     # detections of categories absent from the room are rare false positives
-    absent = ~np.asarray(tiny_scenes.present)[:, None, :] & valid[..., None]
+    absent = ~np.asarray(tiny_scenes.present)[tiny_scenes.state_scene]     # (T, C)
     fp_rate = hit[absent].mean()
     assert fp_rate < 0.03
     assert (conf[hit & absent] <= 0.35 + 1e-3).all()
@@ -258,7 +255,9 @@ def test_stored_global_codes_follow_state_order(tiny_scenes):
         room = layout.generate_room(tiny_scenes.meta("seed"), sid)
         cells = geometry.reachable_cells(room.reachable)
         poses = geometry.state_poses(cells)
-        np.testing.assert_allclose(np.asarray(tiny_scenes.pose)[n, :len(poses)], poses)
+        rows = tiny_scenes.state_slice(n)
+        assert rows.stop - rows.start == len(poses)
+        np.testing.assert_allclose(np.asarray(tiny_scenes.pose)[rows], poses)
         close, far = [], []
         for s in range(0, len(poses), 2):     # horizon 0 only
             i, j = cells[s // 16]
@@ -270,10 +269,11 @@ def test_stored_global_codes_follow_state_order(tiny_scenes):
                      and room.reachable[a, b] for a, b in ahead):
                 far.append(s)
         assert len(close) > 5 and len(far) > 5, sid
-        wall_close = g[n, close, ..., GLOBAL_CH["wall"]].astype(np.float32).mean()
-        wall_far = g[n, far, ..., GLOBAL_CH["wall"]].astype(np.float32).mean()
-        depth_close = g[n, close, ..., GLOBAL_CH["depth"]].astype(np.float32).mean()
-        depth_far = g[n, far, ..., GLOBAL_CH["depth"]].astype(np.float32).mean()
+        close, far = rows.start + np.asarray(close), rows.start + np.asarray(far)  # flat
+        wall_close = g[close, ..., GLOBAL_CH["wall"]].astype(np.float32).mean()
+        wall_far = g[far, ..., GLOBAL_CH["wall"]].astype(np.float32).mean()
+        depth_close = g[close, ..., GLOBAL_CH["depth"]].astype(np.float32).mean()
+        depth_far = g[far, ..., GLOBAL_CH["depth"]].astype(np.float32).mean()
         assert wall_close > wall_far + 0.2, (sid, wall_close, wall_far)
         assert depth_close < depth_far, (sid, depth_close, depth_far)
 

@@ -181,19 +181,16 @@ def test_generated_rooms_transitions_stay_valid(sample_rooms):
         assert moved.mean() > 0.5, f"FloorPlan{fp}"
 
 
-def test_sceneset_transitions_valid_and_padding_self_loops(tiny_scenes):
+def test_sceneset_transitions_stay_in_their_room(tiny_scenes):
     nxt = np.asarray(tiny_scenes.next_state)
-    valid = np.asarray(tiny_scenes.state_valid)
-    N, S, A = nxt.shape
-    assert A == K.NUM_ACTIONS
-    for n in range(N):
-        s_n = int(valid[n].sum())
-        # valid states are a prefix
-        assert valid[n, :s_n].all() and not valid[n, s_n:].any()
+    T, A = nxt.shape
+    assert A == K.NUM_ACTIONS and T == int(np.asarray(tiny_scenes.state_count).sum())
+    for n in range(tiny_scenes.num_scenes):
+        rows = tiny_scenes.state_slice(n)
+        s_n = rows.stop - rows.start
         assert s_n % SPC == 0
-        assert (nxt[n, :s_n] < s_n).all() and (nxt[n, :s_n] >= 0).all()
-        pad = np.arange(s_n, S)
-        assert (nxt[n, s_n:] == pad[:, None]).all()
+        # global flat indices, inside the room's own run of states
+        assert (nxt[rows] < rows.stop).all() and (nxt[rows] >= rows.start).all()
 
 
 def test_sceneset_states_strongly_connected(tiny_scenes):
@@ -201,11 +198,11 @@ def test_sceneset_states_strongly_connected(tiny_scenes):
     moves can be undone by turning around)."""
     import networkx as nx
     nxt = np.asarray(tiny_scenes.next_state)
-    valid = np.asarray(tiny_scenes.state_valid)
     for n in range(0, tiny_scenes.num_scenes, 3):
-        s_n = int(valid[n].sum())
+        rows = tiny_scenes.state_slice(n)
+        s_n = rows.stop - rows.start
         g = nx.DiGraph()
         g.add_nodes_from(range(s_n))
         for a in range(K.DONE):
-            g.add_edges_from(zip(range(s_n), nxt[n, :s_n, a].tolist()))
+            g.add_edges_from(zip(range(s_n), (nxt[rows, a] - rows.start).tolist()))
         assert nx.is_strongly_connected(g), tiny_scenes.scene_names[n]

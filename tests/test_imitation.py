@@ -34,16 +34,18 @@ def test_imitation_loss_normalizations():
 
 
 def _handmade_episode(scenes):
-    """A start state where MoveAhead fails and the target is not in view; the scripted
-    episode: MoveAhead (fails), 8 x RotateLeft (the 8th is back at the start pose: a
-    loop), Done (premature)."""
+    """A start state (scene, local index) where MoveAhead fails and the target is not in
+    view; the scripted episode: MoveAhead (fails), 8 x RotateLeft (the 8th is back at the
+    start pose: a loop), Done (premature)."""
     ns = np.asarray(scenes.next_state)
     for n in range(scenes.num_scenes):
-        for s in range(int(scenes.state_count[n])):
-            if ns[n, s, MOVE_AHEAD] != s:
+        rows = scenes.state_slice(n)
+        for s in range(rows.stop - rows.start):
+            t = rows.start + s                     # global flat index
+            if ns[t, MOVE_AHEAD] != t:
                 continue
             cats = np.flatnonzero(np.asarray(scenes.targets[n]) &
-                                  ~np.asarray(scenes.visible[n, s]))
+                                  ~np.asarray(scenes.visible[t]))
             if cats.size:
                 return n, s, int(cats[0])
     raise AssertionError("no start state with a wall ahead")
@@ -60,7 +62,7 @@ def test_cause_and_state_steps_and_labels_on_a_handmade_episode(tiny_scenes):
         obs = env.observe(state, scenes)
         deadlock.append(bool(obs.deadlock))
         last_failed.append(bool(state.last_failed))
-        expert.append(int(scenes.expert_action[n, state.state, c]))
+        expert.append(int(scenes.expert_action[state.state, c]))
         states.append(int(state.state))
         _, state, _, done, info = env.step_env(state, jnp.int32(a), scenes, params)
         caused.append(bool(caused_deadlock(jnp.int32(a), info)))

@@ -130,20 +130,28 @@ def imported(tmp_path_factory):
 
 
 def idx(scenes, n=0):
-    return key_index(np.asarray(scenes.pose[n]), int(scenes.state_count[n]))
+    """{state key: the room's local state index} of scene n."""
+    return key_index(room(scenes, "pose", n), int(scenes.state_count[n]))
+
+
+def room(scenes, field, n=0):
+    """Scene n's rows of a per-state field (next_state in the room's own indices)."""
+    rows = scenes.state_slice(n)
+    arr = np.asarray(getattr(scenes, field))[rows]
+    return arr - rows.start if field == "next_state" else arr
 
 
 def test_states_order_and_poses(imported):
     scenes, report, _ = imported
     assert scenes.scene_names == ["FloorPlan401", "FloorPlan402"]
     assert list(np.asarray(scenes.state_count)) == [128, 32]
-    assert scenes.num_states == 128
+    assert scenes.num_states == 160 and scenes.max_states == 128   # flat: no padding
     # authors' metres are kept (negative x), so state_key(pose) reproduces their keys
     ix = idx(scenes)
     assert set(ix) == set(states(points()))
-    assert tuple(np.asarray(scenes.pose[0, ix[START]])) == (-0.5, 1.0, 0, 0)
+    assert tuple(room(scenes, "pose")[ix[START]]) == (-0.5, 1.0, 0, 0)
     # ordered by grid row (z), column (x), heading, horizon: the builder's order
-    assert [state_key(p) for p in np.asarray(scenes.pose[0, :3])] == [
+    assert [state_key(p) for p in room(scenes, "pose")[:3]] == [
         "-0.50|1.00|0|0", "-0.50|1.00|0|30", "-0.50|1.00|45|0"]
     assert np.asarray(scenes.room_type).tolist() == [K.ROOM_TYPE_INDEX["bathroom"]] * 2
     assert np.asarray(scenes.split).tolist() == [0, 0]
@@ -169,13 +177,13 @@ def test_states_order_and_poses(imported):
 def test_transitions(imported, start, action, end):
     scenes, _, _ = imported
     ix = idx(scenes)
-    assert int(scenes.next_state[0, ix[start], action]) == ix[end]
+    assert int(room(scenes, "next_state")[ix[start], action]) == ix[end]
 
 
 def test_visibility_presence_and_targets(imported):
     scenes, _, _ = imported
     ix = idx(scenes)
-    vis = np.asarray(scenes.visible[0])
+    vis = room(scenes, "visible")
     sink, can, light = (K.category_index(c) for c in ("Sink", "GarbageCan", "LightSwitch"))
     assert sorted(np.flatnonzero(vis[:, sink])) == sorted(ix[k] for k in SINK_AT)
     assert np.flatnonzero(vis[:, can]).tolist() == [ix[CAN_AT[0]]]
@@ -191,7 +199,7 @@ def test_path_lengths_and_expert(imported):
     scenes, _, _ = imported
     ix = idx(scenes)
     sink, can, light = (K.category_index(c) for c in ("Sink", "GarbageCan", "LightSwitch"))
-    dist, act = np.asarray(scenes.dist[0]), np.asarray(scenes.expert_action[0])
+    dist, act = room(scenes, "dist"), room(scenes, "expert_action")
     s = ix[START]
     # Sink: MoveAhead, RotateRight, MoveAhead (diagonal), RotateRight, MoveAhead
     assert dist[s, sink] == 5 and act[s, sink] == K.MOVE_AHEAD
@@ -224,23 +232,31 @@ def test_features_transposed_and_rows_selected(imported):
     assert scenes.global_dim == G and scenes.appearance_dim == D
     for k in (START, SINK_AT[0]):
         want = global_map(order[k])[0].transpose(1, 2, 0).astype(np.float16)
-        np.testing.assert_array_equal(scenes.global_feat[0, ix[k]], want)
+        np.testing.assert_array_equal(room(scenes, "global_feat")[ix[k]], want)
     s = ix[SINK_AT[1]]
-    np.testing.assert_array_equal(scenes.appearance[0, s, sink], [1, 2, 3])
-    np.testing.assert_array_equal(scenes.det_box[0, s, sink], [10, 20, 30, 40])
-    assert scenes.det_conf[0, s, sink] == np.float16(0.875)
-    np.testing.assert_array_equal(scenes.appearance[0, ix[START], :, 0],
+    np.testing.assert_array_equal(room(scenes, "appearance")[s, sink], [1, 2, 3])
+    np.testing.assert_array_equal(room(scenes, "det_box")[s, sink], [10, 20, 30, 40])
+    assert room(scenes, "det_conf")[s, sink] == np.float16(0.875)
+    np.testing.assert_array_equal(room(scenes, "appearance")[ix[START], :, 0],
                                   (-1.0 - np.arange(22)).astype(np.float16))
 
 
-def test_padding_follows_sceneset_conventions(imported):
+def test_ragged_rooms_are_stored_flat(imported):
+    """128- and 32-state rooms take 160 rows (nothing padded); the small room's moves are
+    global indices inside its own run; padded back (flat.to_padded), it follows the old
+    padding conventions."""
+    from orgnav_jax.scenes.flat import to_padded
     scenes, _, _ = imported
+    assert np.asarray(scenes.state_offset).tolist() == [0, 128]
+    nxt = np.asarray(scenes.next_state)
+    assert nxt.shape == (160, K.NUM_ACTIONS)
+    assert (nxt[128:] >= 128).all() and (nxt[128:] < 160).all() and (nxt[:128] < 128).all()
     pad = np.arange(32, 128)
-    assert not np.asarray(scenes.state_valid[1, pad]).any()
-    assert (np.asarray(scenes.next_state[1, pad]) == pad[:, None]).all()
-    assert (np.asarray(scenes.dist[1, pad]) == UNREACHABLE).all()
-    assert (np.asarray(scenes.expert_action[1, pad]) == NO_ACTION).all()
-    assert not np.asarray(scenes.visible[1, pad]).any()
+    assert (to_padded(scenes, "next_state")[1, pad] == pad[:, None]).all()
+    assert (to_padded(scenes, "dist", UNREACHABLE)[1, pad] == UNREACHABLE).all()
+    assert (to_padded(scenes, "expert_action", NO_ACTION)[1, pad] == NO_ACTION).all()
+    assert not to_padded(scenes, "visible")[1, pad].any()
+    np.testing.assert_array_equal(to_padded(scenes, "dist")[1, :32], room(scenes, "dist", 1))
     scenes.validate()
 
 
@@ -255,8 +271,9 @@ def test_sixty_row_detections_need_and_use_an_explicit_row_list(tmp_path, import
     by_index, _ = import_offline(tmp_path, detection_rows=[classes.index(c)
                                                            for c in K.CATEGORIES])
     for got in (by_name, by_index):
-        np.testing.assert_array_equal(got.det_box, scenes.det_box[:1])
-        np.testing.assert_array_equal(got.appearance[..., 1:], scenes.appearance[:1, ..., 1:])
+        np.testing.assert_array_equal(got.det_box, room(scenes, "det_box"))
+        np.testing.assert_array_equal(got.appearance[..., 1:],
+                                      room(scenes, "appearance")[..., 1:])
 
 
 def test_undirected_graph_and_single_scene_folder(tmp_path, imported):
@@ -264,7 +281,7 @@ def test_undirected_graph_and_single_scene_folder(tmp_path, imported):
     folder = write_scene(tmp_path, directed=False)
     got, report = import_offline(folder)  # the scene folder itself
     assert got.scene_names == ["FloorPlan401"]
-    np.testing.assert_array_equal(got.next_state, scenes.next_state[:1])
+    np.testing.assert_array_equal(got.next_state, room(scenes, "next_state"))
     assert report["scenes"][0]["ignored_edges"] == 0
 
 

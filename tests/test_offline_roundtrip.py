@@ -55,10 +55,11 @@ def imported(exported):
 
 
 def state_map(a: S.SceneSet, b: S.SceneSet, n: int) -> np.ndarray:
-    """Index in b of each valid state of a's scene n (matched by state key)."""
-    k = int(a.state_count[n])
-    ib = key_index(np.asarray(b.pose[n]), int(b.state_count[n]))
-    return np.array([ib[key] for key in scene_state_keys(np.asarray(a.pose[n]), k)])
+    """Local index in b's scene n of each state of a's scene n (matched by state key)."""
+    ra, rb = a.state_slice(n), b.state_slice(n)
+    ib = key_index(np.asarray(b.pose[rb]), rb.stop - rb.start)
+    return np.array([ib[key] for key in scene_state_keys(np.asarray(a.pose[ra]),
+                                                         ra.stop - ra.start)])
 
 
 def assert_equal_by_key(a: S.SceneSet, b: S.SceneSet) -> None:
@@ -67,9 +68,12 @@ def assert_equal_by_key(a: S.SceneSet, b: S.SceneSet) -> None:
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
     for n in range(a.num_scenes):
         m = state_map(a, b, n)
+        ra, rb = a.state_slice(n), b.state_slice(n)
+        assert len(m) == ra.stop - ra.start == rb.stop - rb.start
         for f in PER_STATE:
-            x, y = np.asarray(getattr(a, f)[n])[:len(m)], np.asarray(getattr(b, f)[n])[m]
+            x, y = np.asarray(getattr(a, f)[ra]), np.asarray(getattr(b, f)[rb])[m]
             if f == "next_state":
+                x, y = x - ra.start, y - rb.start    # global -> each room's own indices
                 y = np.argsort(m)[y]  # b's state indices back into a's
             np.testing.assert_array_equal(x, y, err_msg=f"{a.scene_names[n]} {f}")
 
@@ -79,16 +83,16 @@ def test_round_trip_equals_original(original, imported):
     assert_equal_by_key(original, back)
     assert back.global_dim == original.global_dim and back.appearance_dim == original.appearance_dim
     for n in range(original.num_scenes):
-        m = state_map(original, back, n)
+        m = state_map(original, back, n) + back.state_slice(n).start     # global in back
         for lo, hi, glob, app in decoded_features(original, n):
-            np.testing.assert_array_equal(back.global_feat[n, m[lo:hi]], glob.astype(np.float16))
-            np.testing.assert_array_equal(back.appearance[n, m[lo:hi]], app.astype(np.float16))
+            np.testing.assert_array_equal(back.global_feat[m[lo:hi]], glob.astype(np.float16))
+            np.testing.assert_array_equal(back.appearance[m[lo:hi]], app.astype(np.float16))
     # the export decodes exactly as the model does (scenes.features.gather_features)
-    glob, app, _, _ = S.gather_features(original, np.array([4, 4]), np.array([0, 100]))
-    np.testing.assert_allclose(back.global_feat[4, state_map(original, back, 4)[[0, 100]]],
-                               np.asarray(glob), rtol=2e-3, atol=1e-3)
-    np.testing.assert_allclose(back.appearance[4, state_map(original, back, 4)[[0, 100]]],
-                               np.asarray(app), rtol=2e-3, atol=1e-3)
+    glob, app, _, _ = S.gather_features(original, original.global_state(np.array([4, 4]),
+                                                                         np.array([0, 100])))
+    m = state_map(original, back, 4)[[0, 100]] + back.state_slice(4).start
+    np.testing.assert_allclose(back.global_feat[m], np.asarray(glob), rtol=2e-3, atol=1e-3)
+    np.testing.assert_allclose(back.appearance[m], np.asarray(app), rtol=2e-3, atol=1e-3)
     # our expert on the recovered graph agrees everywhere with the exported table
     opt = report["optimal_action"]
     assert opt["mismatches"] == 0 and opt["exact"] == opt["compared"] > 0
@@ -100,7 +104,7 @@ def test_exported_files_follow_the_format(original, exported):
     assert report["scenes"] == 5 and report["states"] == int(original.state_count.sum())
     n = original.scene_names.index("FloorPlan401")
     k = int(original.state_count[n])
-    keys = scene_state_keys(np.asarray(original.pose[n]), k)
+    keys = scene_state_keys(np.asarray(original.pose[original.state_slice(n)]), k)
     folder = out / "FloorPlan401"
     graph = json.loads((folder / "graph.json").read_text())
     assert graph["directed"] and [d["id"] for d in graph["nodes"]] == keys

@@ -157,8 +157,8 @@ def test_il_mask_is_the_deadlock_steps_of_an_episode(tiny_scenes):
     params = env.EnvParams()
     n = 0
     nxt = np.asarray(train.next_state)
-    count = int(train.state_count[n])
-    start = int(np.flatnonzero(nxt[n, :count, K.MOVE_AHEAD] == np.arange(count))[0])
+    rows = train.state_slice(n)
+    start = int(np.flatnonzero(nxt[rows, K.MOVE_AHEAD] == np.arange(rows.start, rows.stop))[0])
     target = int(np.flatnonzero(np.asarray(train.targets[n]))[0])
     st = env.start_episode(jnp.int32(n), jnp.int32(start), jnp.int32(target), train, params)
     obs = env.observe(st, train)

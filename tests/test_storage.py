@@ -79,15 +79,19 @@ def test_split_view_only_that_split(tiny_scenes):
                 if sp == K.SPLIT_INDEX[name]]
         assert np.asarray(v.scene_id).tolist() == want
         assert (np.asarray(v.split) == K.SPLIT_INDEX[name]).all()
-        counts = np.asarray(v.state_valid).sum(1)
-        assert v.num_states == counts.max()            # trimmed to the largest room
+        counts = np.asarray(v.state_count)
+        assert v.num_states == counts.sum()            # only its own rooms' states
         v.validate(f"split_view({name})")
         for n, sid in enumerate(want):
             m = full_ids.index(sid)
-            s = int(counts[n])
+            rv, rf = v.state_slice(n), tiny_scenes.state_slice(m)
+            assert rv.stop - rv.start == rf.stop - rf.start == counts[n]
             for f in ("next_state", "visible", "dist", "expert_action", "det_conf"):
-                np.testing.assert_array_equal(np.asarray(getattr(v, f))[n, :s],
-                                              np.asarray(getattr(tiny_scenes, f))[m, :s])
+                x = np.asarray(getattr(v, f))[rv]
+                y = np.asarray(getattr(tiny_scenes, f))[rf]
+                if f == "next_state":                  # global indices, re-based
+                    x, y = x - rv.start, y - rf.start
+                np.testing.assert_array_equal(x, y, err_msg=f)
             np.testing.assert_array_equal(np.asarray(v.present)[n],
                                           np.asarray(tiny_scenes.present)[m])
     with pytest.raises(ValueError, match="nope"):
@@ -297,6 +301,10 @@ def test_select_errors(tiny_scenes):
         tiny_scenes.room_type_view("garage")
     v = tiny_scenes.select([3, 0])
     assert np.asarray(v.scene_id).tolist() == np.asarray(tiny_scenes.scene_id)[[3, 0]].tolist()
+    v.validate("select([3, 0])")
+    for n, m in enumerate((3, 0)):
+        np.testing.assert_array_equal(np.asarray(v.pose)[v.state_slice(n)],
+                                      np.asarray(tiny_scenes.pose)[tiny_scenes.state_slice(m)])
     assert v.info == tiny_scenes.info
     assert v.global_basis is tiny_scenes.global_basis
 
@@ -315,6 +323,7 @@ def test_load_or_build_caches(bath, tmp_path, monkeypatch):
     second = scenes.load_or_build("tiny", 3, progress=False)
     assert calls == [("tiny", 3)]
     assert_same_sceneset(first, second)
-    assert (tmp_path / "cache" / "scenes-tiny-seed3" / storage.META_FILE).exists()
+    assert (tmp_path / "cache" / f"scenes-tiny-seed3-v{storage.FORMAT_VERSION}"
+            / storage.META_FILE).exists()       # keyed by format version: a new one rebuilds
     scenes.load_or_build("tiny", 4, progress=False)
     assert calls == [("tiny", 3), ("tiny", 4)]

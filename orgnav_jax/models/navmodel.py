@@ -33,7 +33,7 @@ class ModelInputs(NamedTuple):
 
 def model_inputs(scenes, obs) -> ModelInputs:
     """Gather a batched env.Observation's large features from the SceneSet (inside jit)."""
-    glob, app, box, conf = gather_features(scenes, obs.scene, obs.state)
+    glob, app, box, conf = gather_features(scenes, obs.state)   # global flat states
     return ModelInputs(glob, app, box / IMAGE_SIZE, conf, obs.target, obs.prev_action)
 
 

@@ -6,6 +6,7 @@
     python -m orgnav_jax.scenes show 201 [--seed 0] [--room-sizes thor]  # ASCII top view
     python -m orgnav_jax.scenes import --offline-dir DIR --out data/thor   # authors' data
     python -m orgnav_jax.scenes export --preset tiny --out out/offline     # to their format
+    python -m orgnav_jax.scenes convert OLD --out NEW [--features int8]   # format/storage
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import time
 
 from orgnav_jax.errors import run_cli
 from orgnav_jax.safe_write import check_output_dir
-from orgnav_jax.scenes.builder import build
+from orgnav_jax.scenes.builder import FORMAT_VERSION, build
 from orgnav_jax.scenes.layout import ROOM_SIZE_PROFILES, generate_room, render_ascii
 from orgnav_jax.scenes.offline import cli as offline_cli
 from orgnav_jax.scenes.presets import PRESETS, get_preset
@@ -52,6 +53,14 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--room-sizes", default="default", choices=sorted(ROOM_SIZE_PROFILES),
                    help="room-size profile: default, or thor (AI2-THOR's, preset large)")
+    c = sub.add_parser("convert", help="rewrite a saved SceneSet in the current format "
+                       "(e.g. a padded version-1 set) and/or another feature storage")
+    c.add_argument("source", help="a saved SceneSet directory (any readable version)")
+    c.add_argument("--out", required=True, help="output directory (may be the source: it "
+                   "is replaced atomically)")
+    c.add_argument("--features", choices=("float16", "int8"), help="feature storage "
+                   "(default: keep): int8 stores them with a per-channel scale")
+    c.add_argument("--json", action="store_true", help="also print the summary as JSON")
     offline_cli.add_parsers(sub)
     args = parser.parse_args(argv)
 
@@ -76,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
         build_s = time.perf_counter() - t0
         summary = summarize(scenes)
         summary.update(build_s=build_s, disk_mb=disk_size(args.out) / 2**20, out=args.out)
+    elif args.command == "convert":
+        summary = _convert(args)
     elif args.command == "info":
         summary = summarize(load(args.path, mmap=True))
         summary.update(disk_mb=disk_size(args.path) / 2**20)
@@ -88,6 +99,22 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(summary))
     return 0
+
+
+def _convert(args) -> dict:
+    import warnings
+
+    from orgnav_jax.scenes.quantize import with_features
+    check_output_dir(args.out, is_scene_set, "a SceneSet")
+    with warnings.catch_warnings():      # the old-format warning names this very command
+        warnings.simplefilter("ignore")
+        scenes = load(args.source, mmap=True)
+    scenes = with_features(scenes, args.features)
+    save(scenes, args.out, validate=args.features is not None)
+    summary = summarize(load(args.out, mmap=True))
+    summary.update(disk_mb=disk_size(args.out) / 2**20, out=args.out)
+    print(f"converted {args.source} -> {args.out} (format version {FORMAT_VERSION})")
+    return summary
 
 
 if __name__ == "__main__":

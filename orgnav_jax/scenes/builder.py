@@ -1,33 +1,32 @@
-"""Build a SceneSet from a preset and a seed: rooms -> observations -> padded arrays ->
+"""Build a SceneSet from a preset and a seed: rooms -> observations -> flat arrays ->
 expert tables."""
 
 from __future__ import annotations
 
 import dataclasses
 
-import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
 from orgnav_jax.constants import (
-    NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPE_INDEX, ROOM_TYPES, SPLIT_INDEX, TARGETS,
+    NUM_CATEGORIES, ROOM_TYPE_INDEX, ROOM_TYPES, SPLIT_INDEX, TARGETS,
     category_index,
 )
 from orgnav_jax.scenes import detector, geometry, global_view
-from orgnav_jax.scenes.expert import expert_tables
+from orgnav_jax.scenes.flat import EXPERT_CHUNK, flat_expert_tables  # noqa: F401 (re-export)
 from orgnav_jax.scenes.layout import Room, generate_room
 from orgnav_jax.scenes.presets import ScenePreset, get_preset
-from orgnav_jax.scenes.sceneset import NO_ACTION, UNREACHABLE, SceneSet
+from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet, storage_offsets
 
 FORMAT_NAME = "orgnav_jax.sceneset"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: flat (unpadded) state axis, state_offset, optional int8 scales;
+                    # 1: every room padded to the largest (read by storage.load, converted)
 STORE_DTYPE = np.float16
-EXPERT_CHUNK = 8  # rooms per expert-table call (bounds memory; one compile)
 
 
 @dataclasses.dataclass
 class RoomArrays:
-    """Per-room arrays before padding; S = 16 * reachable cells."""
+    """Per-room arrays before stacking; S = 16 * reachable cells."""
     floorplan: int
     room_type: int
     split: int
@@ -90,53 +89,45 @@ def feature_bases(preset: ScenePreset) -> dict[str, np.ndarray]:
 
 
 def stack_rooms(rooms: list[RoomArrays], **extra) -> SceneSet:
-    """Pad rooms to a common S and stack them; computes the expert tables."""
-    N, S = len(rooms), max(len(r.pose) for r in rooms)
-    C = NUM_CATEGORIES
-    next_state = np.tile(np.arange(S, dtype=np.int32)[None, :, None], (N, 1, NUM_ACTIONS))
-    valid = np.zeros((N, S), bool)
+    """Concatenate rooms on one flat state axis (grouped by split,
+    sceneset.storage_offsets) and compute the expert tables."""
+    counts = np.array([len(r.pose) for r in rooms], np.int32)
+    split = np.array([r.split for r in rooms], np.int32)
+    offsets = storage_offsets(split, counts)
+    order = np.argsort(offsets, kind="stable")
     fields = {
-        "pose": np.zeros((N, S, 4), np.float32),
-        "visible": np.zeros((N, S, C), bool),
-        "det_box": np.zeros((N, S, C, 4), STORE_DTYPE),
-        "det_conf": np.zeros((N, S, C), STORE_DTYPE),
-        "appearance": np.zeros((N, S, C) + rooms[0].appearance.shape[2:], STORE_DTYPE),
-        "global_feat": np.zeros((N, S) + rooms[0].global_feat.shape[1:], STORE_DTYPE),
+        "next_state": np.concatenate([rooms[n].next_state.astype(np.int32) + offsets[n]
+                                      for n in order]),
+        "pose": np.concatenate([rooms[n].pose for n in order]).astype(np.float32),
+        "visible": np.concatenate([rooms[n].visible for n in order]).astype(bool),
     }
-    for n, r in enumerate(rooms):
-        s = len(r.pose)
-        next_state[n, :s] = r.next_state
-        valid[n, :s] = True
-        for name, arr in fields.items():
-            arr[n, :s] = getattr(r, name)
-    dist = np.full((N, S, C), UNREACHABLE, np.int16)
-    action = np.full((N, S, C), NO_ACTION, np.int8)
-    for lo in range(0, N, EXPERT_CHUNK):
-        hi = min(lo + EXPERT_CHUNK, N)
-        idx = np.arange(lo, lo + EXPERT_CHUNK) % N  # pad the last chunk: one compile
-        d, a = expert_tables(jnp.asarray(next_state[idx]), jnp.asarray(fields["visible"][idx]),
-                             jnp.asarray(valid[idx]))
-        dist[lo:hi], action[lo:hi] = np.asarray(d)[:hi - lo], np.asarray(a)[:hi - lo]
+    for name in ("det_box", "det_conf", "appearance", "global_feat"):
+        fields[name] = np.concatenate([getattr(rooms[n], name) for n in order]
+                                      ).astype(STORE_DTYPE)
+    dist, action = flat_expert_tables(fields["next_state"], fields["visible"], offsets, counts)
     room_type = np.array([r.room_type for r in rooms], np.int32)
     present = np.stack([r.present for r in rooms])
     return SceneSet(
-        next_state=next_state, state_valid=valid, dist=dist, expert_action=action,
-        present=present, targets=valid_targets(room_type, present, dist),
-        state_count=valid.sum(1).astype(np.int32), room_type=room_type,
-        scene_id=np.array([r.floorplan for r in rooms], np.int32),
-        split=np.array([r.split for r in rooms], np.int32),
+        dist=dist, expert_action=action, present=present,
+        targets=valid_targets(room_type, present, dist, offsets, counts),
+        state_offset=offsets, state_count=counts, room_type=room_type,
+        scene_id=np.array([r.floorplan for r in rooms], np.int32), split=split,
         **fields, **extra,
     )
 
 
-def valid_targets(room_type: np.ndarray, present: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """(N,) room types, (N, C) present, (N, S, C) dist -> (N, C) bool episode targets:
-    a target of the room type (constants.TARGETS), present, and reachable (visible from
-    some state; the state graph of a room is strongly connected)."""
+def valid_targets(room_type: np.ndarray, present: np.ndarray, dist: np.ndarray,
+                  offsets: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(N,) room types, (N, C) present, (T, C) flat dist, (N,) state offsets and counts
+    -> (N, C) bool episode targets: a target of the room type (constants.TARGETS),
+    present, and reachable (visible from some state; the state graph of a room is
+    strongly connected)."""
     of_type = np.zeros((len(ROOM_TYPES), NUM_CATEGORIES), bool)
     for t, names in enumerate(ROOM_TYPES):
         of_type[t, [category_index(c) for c in TARGETS[names]]] = True
-    return of_type[room_type] & present & (dist < UNREACHABLE).any(1)
+    reachable = np.stack([(dist[o:o + k] < UNREACHABLE).any(0)
+                          for o, k in zip(np.asarray(offsets), np.asarray(counts))])
+    return of_type[room_type] & present & reachable
 
 
 def build(preset: str | ScenePreset = "small", seed: int = 0, *, progress: bool = False,

@@ -1,5 +1,12 @@
 """Save and load a SceneSet: a directory with `meta.json` and one `.npy` per field.
 
+Format version 2 (scenes.builder.FORMAT_VERSION) stores the flat layout (sceneset.py:
+per-state arrays (T, ...) over all rooms, state_offset and state_count per scene, int8
+features with their scales when quantized). Version 1 sets (every room padded to the
+largest, with a state_valid mask) still load: they are converted in memory on every load
+(only the valid rows are kept), with a warning naming the command that converts them on
+disk once: `python -m orgnav_jax.scenes convert OLD --out NEW`.
+
 Saving is atomic (written beside the target, then renamed over it), so an interrupted
 save never leaves a half-written set where a good one was. Saving replaces only an empty
 directory or a SceneSet (is_scene_set: meta.json and our .npy files, nothing else):
@@ -25,15 +32,28 @@ from orgnav_jax.scenes.builder import FORMAT_NAME, FORMAT_VERSION
 from orgnav_jax.scenes.sceneset import SceneSet
 
 META_FILE = "meta.json"
-_OPTIONAL = ("appearance_proto", "appearance_basis", "global_basis")
+_OPTIONAL = ("appearance_proto", "appearance_basis", "global_basis", "global_scale",
+             "appearance_scale")
+PADDED_VERSION = 1     # the padded layout: read and converted (flat.from_padded)
+_PADDED_ONLY = ("state_valid",)              # fields of version 1 that version 2 lacks
+_FLAT_ONLY = ("state_offset", "global_scale", "appearance_scale")
 
 
-def _array_fields() -> list[str]:
-    return [f.name for f in dataclasses.fields(SceneSet) if f.name != "info"]
+def _array_fields(version: int = FORMAT_VERSION) -> list[str]:
+    names = [f.name for f in dataclasses.fields(SceneSet) if f.name != "info"]
+    if version == PADDED_VERSION:
+        names = [n for n in names if n not in _FLAT_ONLY] + list(_PADDED_ONLY)
+    return names
 
 
 def _own_files() -> set[str]:
-    return {META_FILE} | {f"{name}.npy" for name in _array_fields()}
+    return ({META_FILE} | {f"{name}.npy" for name in _array_fields()}
+            | {f"{name}.npy" for name in _PADDED_ONLY})
+
+
+def convert_command(path, out: str = "NEW") -> str:
+    """The command that rewrites an old-format set in the current format."""
+    return f"python -m orgnav_jax.scenes convert {path} --out {out}"
 
 
 def is_scene_set(path: str | os.PathLike) -> bool:
@@ -129,10 +149,13 @@ def save(scenes: SceneSet, path: str | os.PathLike, validate: bool = True, *,
 
 
 def load(path: str | os.PathLike, mmap: bool = False) -> SceneSet:
-    """Read a SceneSet saved by `save` (numpy arrays; memory-mapped if mmap=True).
+    """Read a SceneSet saved by `save` (numpy arrays; memory-mapped if mmap=True: then
+    nothing is read into memory beyond what validation streams through, and split views
+    of the set are views of the maps).
 
-    Raises FileNotFoundError / ValueError naming the file or field when `path` is not a
-    SceneSet directory, is from another format version, or is truncated.
+    A version-1 (padded) set is converted in memory (a warning names the `convert`
+    command). Raises FileNotFoundError / ValueError naming the file or field when `path`
+    is not a SceneSet directory, is from an unknown format version, or is truncated.
     """
     path = Path(path)
     if not path.exists():
@@ -156,12 +179,15 @@ def load(path: str | os.PathLike, mmap: bool = False) -> SceneSet:
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
         raise ValueError(f"{meta_path}: format is {got!r}, expected {FORMAT_NAME!r}")
-    if meta.get("version") != FORMAT_VERSION:
-        raise ValueError(f"{meta_path}: format version {meta.get('version')!r}, this "
-                         f"orgnav_jax reads version {FORMAT_VERSION}; rebuild the scenes")
+    version = meta.get("version")
+    if version not in (FORMAT_VERSION, PADDED_VERSION):
+        raise ValueError(f"{meta_path}: format version {version!r}, this orgnav_jax reads "
+                         f"versions {PADDED_VERSION} and {FORMAT_VERSION}; rebuild the scenes")
     fields = meta.get("fields", {})
+    if not isinstance(fields, dict):
+        raise ValueError(f"{meta_path}: 'fields' must be an object (field -> shape, dtype)")
     arrays = {}
-    for name in _array_fields():
+    for name in _array_fields(version):
         if name not in fields:
             if name in _OPTIONAL:
                 continue
@@ -181,9 +207,36 @@ def load(path: str | os.PathLike, mmap: bool = False) -> SceneSet:
         arrays[name] = arr
     info = tuple((k, tuple(v) if isinstance(v, list) else v)
                  for k, v in meta.get("info", {}).items())
-    scenes = SceneSet(**arrays, info=info)
+    if version == PADDED_VERSION:
+        scenes = _from_padded_file(path, arrays, info)
+    else:
+        scenes = SceneSet(**arrays, info=info)
     scenes.validate(str(path))
     return scenes
+
+
+def _from_padded_file(path: Path, arrays: dict, info: tuple) -> SceneSet:
+    """A version-1 (padded) set, converted in memory (flat.from_padded), with a warning."""
+    from orgnav_jax.scenes.flat import from_padded
+    valid = arrays.get("state_valid")
+    if valid is None or valid.ndim != 2 or valid.dtype != bool:
+        raise ValueError(f"{path}: format version {PADDED_VERSION} needs field 'state_valid' "
+                         "(N, S) bool")
+    for name in ("next_state", "pose", "visible", "dist", "expert_action", "det_box",
+                 "det_conf", "appearance", "global_feat"):
+        if tuple(arrays[name].shape[:2]) != valid.shape:
+            raise ValueError(f"{path}: field {name!r} has shape {arrays[name].shape}, "
+                             f"expected (N, S, ...) = {valid.shape} + ... in format version "
+                             f"{PADDED_VERSION}")
+    counts = valid.sum(1)
+    if not (valid == (np.arange(valid.shape[1])[None] < counts[:, None])).all():
+        raise ValueError(f"{path}: field 'state_valid' must be True exactly on the first "
+                         "states of each scene (format version 1)")
+    warnings.warn(f"{path}: a SceneSet of format version {PADDED_VERSION} (every room padded "
+                  "to the largest); converted in memory on each load. Convert it on disk once:"
+                  f" {convert_command(path)}", stacklevel=3)
+    info = tuple((k, FORMAT_VERSION if k == "version" else v) for k, v in info)
+    return from_padded(arrays, info)
 
 
 def disk_size(path: str | os.PathLike) -> int:

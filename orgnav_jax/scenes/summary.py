@@ -5,20 +5,20 @@ from __future__ import annotations
 import numpy as np
 
 from orgnav_jax.constants import CATEGORIES, ROOM_TYPES, SPLITS, TARGETS, category_index
-from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet
+from orgnav_jax.scenes.sceneset import PER_STATE_FIELDS, UNREACHABLE, SceneSet
 
 
 def summarize(scenes: SceneSet) -> dict:
     """Rooms per split and type, state counts, target reachability, feature sizes.
 
     reachable_share[room_type][target]: over rooms of that type holding the target, the
-    share of valid start states from which some state seeing it can be reached.
+    share of start states from which some state seeing it can be reached.
     """
-    valid = np.asarray(scenes.state_valid)
-    n_states = valid.sum(1)
+    n_states = np.asarray(scenes.state_count).astype(np.int64)
+    offsets = np.asarray(scenes.state_offset)
     room_type, split = np.asarray(scenes.room_type), np.asarray(scenes.split)
     present = np.asarray(scenes.present)
-    dist = np.asarray(scenes.dist)
+    dist = np.asarray(scenes.dist)          # (T, C)
     rooms = {s: {t: int(((split == i) & (room_type == j)).sum())
                  for j, t in enumerate(ROOM_TYPES)} for i, s in enumerate(SPLITS)}
     share = {}
@@ -30,15 +30,14 @@ def summarize(scenes: SceneSet) -> dict:
             if idx.size == 0:
                 share[t][name] = None
                 continue
-            ok = (dist[idx, :, c] < UNREACHABLE) & valid[idx]
-            share[t][name] = float(ok.sum() / valid[idx].sum())
+            ok = sum(int((dist[offsets[n]:offsets[n] + n_states[n], c] < UNREACHABLE).sum())
+                     for n in idx)
+            share[t][name] = float(ok / n_states[idx].sum())
     per_state = sum(np.asarray(getattr(scenes, f)).nbytes
-                    for f in ("next_state", "state_valid", "pose", "visible", "dist",
-                              "expert_action", "det_box", "det_conf", "appearance",
-                              "global_feat")) / max(valid.size, 1)
+                    for f in PER_STATE_FIELDS) / max(scenes.num_states, 1)
     return {
         "preset": scenes.meta("preset"), "seed": scenes.meta("seed"),
-        "num_scenes": scenes.num_scenes, "padded_states": scenes.num_states,
+        "num_scenes": scenes.num_scenes, "states_total": scenes.num_states,
         "rooms": rooms,
         "states": {"min": int(n_states.min()), "median": float(np.median(n_states)),
                    "max": int(n_states.max())},
@@ -52,6 +51,7 @@ def summarize(scenes: SceneSet) -> dict:
             "stored_appearance": f"{len(CATEGORIES)}x{scenes.appearance.shape[-1]} "
                                  f"{scenes.appearance.dtype}",
             "bytes_per_state": round(per_state, 1),
+            "feature_bytes": int(scenes.appearance.nbytes + scenes.global_feat.nbytes),
         },
     }
 
@@ -59,7 +59,7 @@ def summarize(scenes: SceneSet) -> dict:
 def format_summary(s: dict) -> str:
     """The dict from `summarize` as a human table."""
     lines = [f"SceneSet preset={s['preset']} seed={s['seed']}: {s['num_scenes']} rooms, "
-             f"S padded to {s['padded_states']}"]
+             f"{s['states_total']} states (flat, unpadded)"]
     lines.append(f"{'rooms':<8}" + "".join(f"{t:>13}" for t in ROOM_TYPES))
     for split, per in s["rooms"].items():
         lines.append(f"{split:<8}" + "".join(f"{per[t]:>13}" for t in ROOM_TYPES))
@@ -74,7 +74,8 @@ def format_summary(s: dict) -> str:
     f = s["features"]
     lines.append(f"features: global {f['global']} (stored {f['stored_global']}), appearance "
                  f"{f['appearance']} (stored {f['stored_appearance']}), "
-                 f"{f['bytes_per_state']:.0f} bytes/state")
+                 f"{f['bytes_per_state']:.0f} bytes/state, "
+                 f"{f['feature_bytes'] / 2**20:.1f} MB of features")
     if "disk_mb" in s:
         lines.append(f"disk: {s['disk_mb']:.1f} MB")
     if "build_s" in s:

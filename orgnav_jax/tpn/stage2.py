@@ -71,7 +71,7 @@ def collect(model, base_params, cfg: TPNConfig, scenes, key, num: int) -> Episod
                          "greedy": lambda: jnp.argmax(logits, -1)},
                         cfg.act, "stage-2 action rule (act)")().astype(jnp.int32)
         deadlock, vision = detect(cfg.memory, vision, obs.deadlock, inputs.glob, fresh)
-        expert = scenes.expert_action[state.scene, state.state, state.target]
+        expert = scenes.expert_action[state.state, state.target]
         _, state2, _, done, info = v_step(state, action, scenes, params)
         state = where_rows(running, state2, state)
         out = (jax.lax.stop_gradient(h), jax.lax.stop_gradient(jax.nn.softmax(logits)),
@@ -143,8 +143,9 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
 
 def _train_tpn(cfg: TPNConfig, run_dir: Path, model, base_params, nav_cfg, scenes,
                resume: bool, progress: bool, stop_after_chunks: int | None) -> dict:
-    train_scenes = scenes.split_view("train").to_device()
-    val_scenes = scenes.split_view("val").to_device()
+    from orgnav_jax.training.policy import split_on_device
+    train_scenes = split_on_device(nav_cfg, "train")    # shared device copies, as in
+    val_scenes = split_on_device(nav_cfg, "val")        # training.loop
     tpn = build_tpn(nav_cfg, cfg.network)
     optimizer = make_optimizer(cfg)
     k_init, k_run = jax.random.split(jax.random.PRNGKey(cfg.seed))

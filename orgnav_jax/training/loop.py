@@ -21,7 +21,7 @@ from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import build_model
 from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.training.driver import NonFiniteLoss, Stage, run_stage  # noqa: F401 (API)
-from orgnav_jax.training.policy import model_policy, preflight
+from orgnav_jax.training.policy import model_policy, preflight, split_on_device
 from orgnav_jax.training.run_dir import open_run_dir
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 
@@ -73,8 +73,10 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
 
 def _train(cfg: TrainConfig, scenes, run_dir: Path, resume: bool, progress: bool,
            stop_after_chunks: int | None) -> dict:
-    train_scenes = scenes.split_view("train").to_device()
-    val_scenes = scenes.split_view("val").to_device()
+    # one device copy per split in the process (shared with a later evaluation); the
+    # test rooms of the memory-mapped set are never read
+    train_scenes = split_on_device(cfg, "train")
+    val_scenes = split_on_device(cfg, "val")
     val_episodes = sample_episodes(val_scenes, cfg.eval_episodes_per_room_type, seed=0,
                                    split="val")
     model = build_model(cfg, train_scenes)

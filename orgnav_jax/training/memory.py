@@ -7,11 +7,13 @@
 The estimates count the large arrays a chunk holds at once: the runner state in and out
 (parameters, Adam moments, each env's visited-state trail of max_steps + 1 states), the
 rollout's trajectory (num_envs x rollout_len steps), the loss's activations over those
-steps and the scene arrays. They are calibrated against XLA's own figure for the
-compiled chunk (memory_analysis; docs/training.md: within a factor 1.2-1.7, above it)
-and are meant to catch configurations that cannot fit at all (max_steps 1e9 asks for
-most of a terabyte), not to predict the peak to the byte: the check fails only when the
-estimate exceeds twice the available memory, and prints a note when it exceeds it.
+steps and the scene arrays a run puts on the device (its train and val rooms only: the
+SceneSet is flat and memory-mapped, so the test rooms are never loaded). They are
+calibrated against XLA's own figure for the compiled chunk (memory_analysis;
+docs/training.md: within a factor 1.2-1.7, above it) and are meant to catch
+configurations that cannot fit at all (max_steps 1e9 asks for most of a terabyte), not
+to predict the peak to the byte: the check fails only when the estimate exceeds twice
+the available memory, and prints a note when it exceeds it.
 The process's fixed overhead (JAX, compiled code, ~1 GB on CPU) is not counted.
 """
 
@@ -46,9 +48,20 @@ def human(n: float) -> str:
 
 
 def scene_bytes(scenes) -> int:
-    """Bytes of a SceneSet's arrays."""
+    """Bytes of a SceneSet's arrays (of a memory-mapped set: what loading it would take)."""
     return int(sum(getattr(getattr(scenes, f.name), "nbytes", 0)
                    for f in dataclasses.fields(scenes)))
+
+
+def training_scene_bytes(scenes) -> int:
+    """Bytes of the train and val views a training run holds (split views of a flat set
+    hold only their own rooms' states)."""
+    import numpy as np
+
+    from orgnav_jax.constants import split_index
+    split = np.asarray(scenes.split)
+    return sum(scene_bytes(scenes.split_view(s)) for s in ("train", "val")
+               if (split == split_index(s)).any())
 
 
 def param_count(cfg, scenes) -> int:
@@ -88,7 +101,7 @@ def chunk_memory_bytes(cfg, scenes, params: int | None = None) -> dict[str, int]
         # forward activations of the loss over N x T steps, kept for the backward pass
         # (XLA reuses their buffers for the gradients), plus one rollout step
         "activations": 4 * N * (T + 1) * _step_floats(cfg, scenes),
-        "scenes": scene_bytes(scenes),
+        "scenes": training_scene_bytes(scenes),
     }
 
 
@@ -109,7 +122,7 @@ def tpn_memory_bytes(cfg, nav_cfg, scenes, params: int | None = None) -> dict[st
         "attention": 4 * N * T * T,      # the (T, T) scores of each episode (XLA fuses
                                          # the mask and the top-k into them)
         "trail": 4 * N * (T + 1) * TRAIL_COPIES,
-        "scenes": scene_bytes(scenes),
+        "scenes": training_scene_bytes(scenes),
     }
 
 

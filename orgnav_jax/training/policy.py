@@ -30,10 +30,19 @@ def model_policy(model, name: str = "Model") -> Policy:
 
 
 def scenes_for(cfg: TrainConfig):
-    """The full SceneSet a config trains on (cached preset or a saved directory; the last
-    one loaded stays in memory)."""
+    """The full SceneSet a config trains on (cached preset or a saved directory),
+    memory-mapped: nothing of it is read until a split view is used (scenes.cache; the
+    last one loaded is kept)."""
     from orgnav_jax.scenes import load_scenes
     return load_scenes(cfg.scene_preset, cfg.scene_seed, cfg.scenes_dir)
+
+
+def split_on_device(cfg: TrainConfig, split: str):
+    """One split of scenes_for(cfg) on the device, shared by everything in the process
+    that uses that split (training, its val evaluation, test evaluation): only that
+    split's rooms are read from disk, once (scenes.cache.device_split)."""
+    from orgnav_jax.scenes.cache import device_split
+    return device_split(cfg.scene_preset, cfg.scene_seed, cfg.scenes_dir, split)
 
 
 def scenes_name(cfg: TrainConfig) -> str:
@@ -88,8 +97,9 @@ def load_run_model(run_dir: str | Path, best: bool = True):
         params, _ = ckpt.restore(like, best=True)
     else:
         from orgnav_jax.training.update import init_runner, make_optimizer
-        runner_like = jax.eval_shape(lambda: init_runner(
-            cfg, model, make_optimizer(cfg), train.to_device(), jax.random.PRNGKey(0)))
+        runner_like = jax.eval_shape(lambda scenes: init_runner(   # shapes only: the
+            cfg, model, make_optimizer(cfg), scenes, jax.random.PRNGKey(0)), train)  # train
+                                                                    # rooms are not read
         runner, _ = ckpt.restore(runner_like)
         params = runner.params
     return model, params, cfg

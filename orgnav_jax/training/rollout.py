@@ -94,7 +94,7 @@ def rollout(model, runner: RunnerState, scenes, env_params: env.EnvParams, lengt
             runner.params, train_inputs(model, scenes, obs, k_drop, dropout), lstm)
         action = jax.random.categorical(k_act, logits).astype(jnp.int32)
         st = runner.env_state
-        expert = scenes.expert_action[st.scene, st.state, st.target].astype(jnp.int32)
+        expert = scenes.expert_action[st.state, st.target].astype(jnp.int32)
         _, env_state, reward, done, info = v_step(jax.random.split(k_env, num_envs), st,
                                                    action, scenes, env_params)
         ep_return = runner.ep_return + reward

@@ -40,6 +40,9 @@ def add_parsers(sub) -> None:
                    "outside the 22 (default: ignore them and report their names)")
     i.add_argument("--ignore-unmatched-edges", action="store_true",
                    help="drop graph edges matching no action instead of failing")
+    i.add_argument("--features", choices=("float16", "int8"), default="float16",
+                   help="storage of the large features: float16 (default) or int8 with a "
+                   "per-channel scale (half the bytes; dequantized inside jit)")
     i.add_argument("--json", action="store_true", help="also print the report as JSON")
     e = sub.add_parser("export", help="write a SceneSet in the authors' offline format")
     src = e.add_mutually_exclusive_group(required=True)
@@ -88,7 +91,7 @@ def _import(args) -> int:
         args.offline_dir, args.out, scenes=args.scenes, detection_file=args.detection_file,
         detection_rows=_rows(args), unknown_types="error" if args.strict_types else "ignore",
         unmatched_edges="ignore" if args.ignore_unmatched_edges else "error", progress=True,
-        splits=args.splits, only_listed=args.only_listed)
+        splits=args.splits, only_listed=args.only_listed, features=args.features)
     print(format_report(report))
     print(format_summary(summarize(scenes)))
     print(f"saved to {args.out}")

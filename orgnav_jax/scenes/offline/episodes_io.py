@@ -109,17 +109,16 @@ def to_offline_records(episodes: EpisodeSet, scenes: SceneSet) -> list[dict]:
     """Episodes as authors' records; task_data holds the exporter's synthetic objectId of
     the target category (exporter.object_ids), so they match an exported scene."""
     names, pose = scenes.scene_names, np.asarray(scenes.pose)
-    counts, visible, present = (np.asarray(scenes.state_count), np.asarray(scenes.visible),
-                                np.asarray(scenes.present))
+    visible, present = np.asarray(scenes.visible), np.asarray(scenes.present)
     ids = {}
     out = []
     for n, s, c in zip(episodes.scene, episodes.start, episodes.target):
-        n, s, c = int(n), int(s), int(c)
+        n, s, c = int(n), int(s), int(c)          # s: the room's local state index
+        rows = scenes.state_slice(n)
         if n not in ids:
-            k = counts[n]
-            ids[n] = object_ids(pose[n, :k], visible[n, :k], present[n])
+            ids[n] = object_ids(pose[rows], visible[rows], present[n])
         out.append({"scene": names[n], "goal_object_type": CATEGORIES[c],
-                    "task_data": [ids[n][c]], "state": state_key(pose[n, s])})
+                    "task_data": [ids[n][c]], "state": state_key(pose[rows.start + s])})
     return out
 
 

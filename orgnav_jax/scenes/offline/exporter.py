@@ -125,10 +125,12 @@ def decoded_features(scenes: SceneSet, n: int, chunk: int = CHUNK):
     """Yield (lo, hi, global (k, 7, 7, G) float32, appearance (k, C, d) float32) for the
     valid states lo..hi of scene n, decoded as the model sees them."""
     bases = {k: None if getattr(scenes, k) is None else jnp.asarray(getattr(scenes, k))
-             for k in ("global_basis", "appearance_basis", "appearance_proto")}
-    count = int(np.asarray(scenes.state_count)[n])
-    glob, app = np.asarray(scenes.global_feat[n]), np.asarray(scenes.appearance[n])
-    conf = np.asarray(scenes.det_conf[n])
+             for k in ("global_basis", "appearance_basis", "appearance_proto",
+                       "global_scale", "appearance_scale")}
+    rows = scenes.state_slice(n)
+    count = rows.stop - rows.start
+    glob, app = scenes.global_feat[rows], scenes.appearance[rows]
+    conf = scenes.det_conf[rows]
     for lo in range(0, count, chunk):
         hi = min(lo + chunk, count)
         idx = np.minimum(np.arange(lo, lo + chunk), count - 1)  # pad: fixed shape
@@ -161,15 +163,15 @@ def _write_json_files(folder: Path, keys, pose, nxt, visible, present, dist, act
 
 def export_scene(scenes: SceneSet, n: int, folder: Path, hdf5_dtype: str = "float32") -> int:
     """Write scene n into `folder` (created). Returns its number of states."""
-    count = int(np.asarray(scenes.state_count)[n])
-    pose = np.asarray(scenes.pose[n])[:count]
+    rows = scenes.state_slice(n)
+    count = rows.stop - rows.start
+    pose = np.asarray(scenes.pose[rows])
     keys = scene_state_keys(pose, count)
-    _write_json_files(folder, keys, pose, np.asarray(scenes.next_state[n])[:count],
-                      np.asarray(scenes.visible[n])[:count], np.asarray(scenes.present[n]),
-                      np.asarray(scenes.dist[n])[:count],
-                      np.asarray(scenes.expert_action[n])[:count])
-    box = np.asarray(scenes.det_box[n], np.float32)
-    conf = np.asarray(scenes.det_conf[n], np.float32)
+    _write_json_files(folder, keys, pose, np.asarray(scenes.next_state[rows]) - rows.start,
+                      np.asarray(scenes.visible[rows]), np.asarray(scenes.present[n]),
+                      np.asarray(scenes.dist[rows]), np.asarray(scenes.expert_action[rows]))
+    box = np.asarray(scenes.det_box[rows], np.float32)
+    conf = np.asarray(scenes.det_conf[rows], np.float32)
     with h5py.File(folder / files.RESNET_FILE, "w") as fg, \
             h5py.File(folder / files.EXPORT_DETECTION_FILE, "w") as fd:
         for lo, hi, glob, app in decoded_features(scenes, n):

@@ -1,14 +1,17 @@
 """Import the authors' offline AI2-THOR data (FloorPlanN folders) into a SceneSet.
 
 Two passes: (1) read and cross-check every scene's JSON files and hdf5 headers, which
-fixes N, S (the largest scene) and the feature widths; (2) allocate the padded float16
-arrays once and stream the features into them state by state. Expert tables are ours
-(scenes.expert.expert_tables); optimal_action.json, when present, is only compared.
+fixes N, the state counts and the feature widths; (2) allocate the flat float16 arrays
+(T states of all rooms, no padding) once and stream the features into them state by
+state. Expert tables are ours (scenes.expert.expert_tables); optimal_action.json, when
+present, is only compared.
 
-Imported SceneSets hold the features themselves (bases None): appearance (N, S, C, d),
-global_feat (N, S, 7, 7, G), both float16. Poses keep the authors' metres (possibly
-negative) so that state_key(pose) reproduces their keys; states are ordered by grid row
-(z), column (x), heading, horizon, valid states first, padding as in every SceneSet.
+Imported SceneSets hold the features themselves (bases None): appearance (T, C, d),
+global_feat (T, 7, 7, G), both float16 (scenes.quantize makes them int8 on request).
+Poses keep the authors' metres (possibly negative) so that state_key(pose) reproduces
+their keys; states are ordered by grid row
+(z), column (x), heading, horizon within each room; rooms are stored grouped by split
+(sceneset.storage_offsets).
 """
 
 from __future__ import annotations
@@ -17,16 +20,13 @@ import os
 import time
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
 from orgnav_jax.constants import NUM_ACTIONS, NUM_CATEGORIES
 from orgnav_jax.safe_write import check_output_dir
-from orgnav_jax.scenes.builder import (
-    EXPERT_CHUNK, FORMAT_NAME, FORMAT_VERSION, STORE_DTYPE, valid_targets,
-)
-from orgnav_jax.scenes.expert import expert_tables
+from orgnav_jax.scenes.builder import FORMAT_NAME, FORMAT_VERSION, STORE_DTYPE, valid_targets
+from orgnav_jax.scenes.flat import flat_expert_tables
 from orgnav_jax.scenes.offline import files
 from orgnav_jax.scenes.offline.features_io import (
     FeatureLayout, detection_rows, find_detection_file, inspect_scene, stream_scene,
@@ -35,7 +35,7 @@ from orgnav_jax.scenes.offline.optimal import compare_optimal
 from orgnav_jax.scenes.offline.reader import SceneGraph, read_scene
 from orgnav_jax.scenes.offline.splits import assign_splits
 from orgnav_jax.scenes.offline.validate import SCENE_NAME, OfflineFormatError, examples
-from orgnav_jax.scenes.sceneset import NO_ACTION, UNREACHABLE, SceneSet
+from orgnav_jax.scenes.sceneset import SceneSet, storage_offsets
 from orgnav_jax.scenes.storage import is_scene_set, save
 
 
@@ -76,19 +76,6 @@ def _layout(graphs, det_paths, detection_rows_arg) -> FeatureLayout:
                 f"{g.folder}: feature shapes resnet {gshape}, detection {dshape} differ from "
                 f"{graphs[0].folder.name}'s {layout.global_shape}, {layout.det_shape}")
     return layout
-
-
-def _expert(next_state, visible, valid):
-    N, S, C = visible.shape
-    dist = np.full((N, S, C), UNREACHABLE, np.int16)
-    action = np.full((N, S, C), NO_ACTION, np.int8)
-    for lo in range(0, N, EXPERT_CHUNK):
-        hi = min(lo + EXPERT_CHUNK, N)
-        idx = np.arange(lo, lo + EXPERT_CHUNK) % N  # pad the last chunk: one compile
-        d, a = expert_tables(jnp.asarray(next_state[idx]), jnp.asarray(visible[idx]),
-                             jnp.asarray(valid[idx]))
-        dist[lo:hi], action[lo:hi] = np.asarray(d)[:hi - lo], np.asarray(a)[:hi - lo]
-    return dist, action
 
 
 def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_file=None,
@@ -132,45 +119,51 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
     layout = _layout(graphs, det_paths, detection_rows)
     t_json = time.perf_counter() - t0
 
-    N, S, C = len(graphs), max(len(g.keys) for g in graphs), NUM_CATEGORIES
+    N, C = len(graphs), NUM_CATEGORIES
+    counts = np.array([len(g.keys) for g in graphs], np.int32)
+    split = np.array([g.split for g in graphs], np.int32)
+    offsets = storage_offsets(split, counts)
+    T, S = int(counts.sum()), int(counts.max())
     d, G = layout.appearance_dim, layout.global_dim
-    next_state = np.tile(np.arange(S, dtype=np.int32)[None, :, None], (N, 1, NUM_ACTIONS))
-    valid = np.zeros((N, S), bool)
-    pose = np.zeros((N, S, 4), np.float32)
-    visible = np.zeros((N, S, C), bool)
-    glob = np.zeros((N, S, 7, 7, G), STORE_DTYPE)
-    appearance = np.zeros((N, S, C, d), STORE_DTYPE)
-    det_box = np.zeros((N, S, C, 4), STORE_DTYPE)
-    det_conf = np.zeros((N, S, C), STORE_DTYPE)
+    next_state = np.zeros((T, NUM_ACTIONS), np.int32)
+    pose = np.zeros((T, 4), np.float32)
+    visible = np.zeros((T, C), bool)
+    glob = np.zeros((T, 7, 7, G), STORE_DTYPE)
+    appearance = np.zeros((T, C, d), STORE_DTYPE)
+    det_box = np.zeros((T, C, 4), STORE_DTYPE)
+    det_conf = np.zeros((T, C), STORE_DTYPE)
     t1 = time.perf_counter()
     with tqdm(list(zip(graphs, det_paths)), desc="features", disable=not progress) as bar:
         for n, (g, det) in enumerate(bar):
-            k = len(g.keys)
-            next_state[n, :k], valid[n, :k] = g.next_state, True
-            pose[n, :k], visible[n, :k] = g.pose, g.visible
-            stream_scene(g.folder, g.keys, det, layout, glob[n], appearance[n], det_box[n],
-                         det_conf[n])
+            o, k = int(offsets[n]), len(g.keys)
+            rows = slice(o, o + k)
+            next_state[rows] = g.next_state + o      # global flat indices
+            pose[rows], visible[rows] = g.pose, g.visible
+            stream_scene(g.folder, g.keys, det, layout, glob[rows], appearance[rows],
+                         det_box[rows], det_conf[rows])
     t_feat = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    dist, action = _expert(next_state, visible, valid)
+    dist, action = flat_expert_tables(next_state, visible, offsets, counts)
     t_expert = time.perf_counter() - t2
     room_type = np.array([g.room_type for g in graphs], np.int32)
     present = np.stack([g.present for g in graphs])
     per_scene = []
     for n, g in enumerate(graphs):
-        k = len(g.keys)
+        rows = slice(int(offsets[n]), int(offsets[n]) + len(g.keys))
         rep = dict(g.report, detection_file=det_paths[n].name)
         if g.authors_action is not None:
-            rep["optimal_action"] = compare_optimal(g.authors_action, next_state[n, :k],
-                                                    dist[n, :k], action[n, :k], g.keys)
+            rep["optimal_action"] = compare_optimal(g.authors_action,
+                                                    next_state[rows] - rows.start,
+                                                    dist[rows], action[rows], g.keys)
         per_scene.append(rep)
     out = SceneSet(
-        next_state=next_state, state_valid=valid, pose=pose, visible=visible, present=present,
-        targets=valid_targets(room_type, present, dist), state_count=valid.sum(1, dtype=np.int32),
+        next_state=next_state, pose=pose, visible=visible, present=present,
+        targets=valid_targets(room_type, present, dist, offsets, counts),
+        state_offset=offsets, state_count=counts,
         dist=dist, expert_action=action, det_box=det_box, det_conf=det_conf,
         appearance=appearance, global_feat=glob, room_type=room_type,
-        scene_id=np.array(numbers, np.int32), split=np.array([g.split for g in graphs], np.int32),
+        scene_id=np.array(numbers, np.int32), split=split,
         info=(("format", FORMAT_NAME), ("version", FORMAT_VERSION), ("preset", "offline"),
               ("source", str(Path(offline_dir).resolve())),
               ("detection_file", det_paths[0].name)))
@@ -181,7 +174,7 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
     out.validate(str(offline_dir))
     opt = [r["optimal_action"] for r in per_scene if "optimal_action" in r]
     report = {
-        "scenes": per_scene, "num_scenes": N, "states": int(valid.sum()), "padded_states": S,
+        "scenes": per_scene, "num_scenes": N, "states": T, "max_states": S,
         "global_dim": G, "appearance_dim": d, "detection_rows": int(layout.det_shape[0]),
         "seconds": {"json": round(t_json, 3), "features": round(t_feat, 3),
                     "expert": round(t_expert, 3)},
@@ -192,14 +185,19 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
     return out, report
 
 
-def import_to(offline_dir: str | os.PathLike, out: str | os.PathLike, **kwargs
-              ) -> tuple[SceneSet, dict]:
+def import_to(offline_dir: str | os.PathLike, out: str | os.PathLike,
+              features: str | None = None, **kwargs) -> tuple[SceneSet, dict]:
     """import_offline, then scenes.save to `out` (loads with scenes.load(out)).
+    features: 'float16' (default) or 'int8' (scenes.quantize: per-channel scales).
 
     `out` must be absent, empty or a SceneSet (checked before importing); anything else
     is refused and left untouched."""
+    from orgnav_jax.scenes.quantize import FEATURE_DTYPES, with_features
+    if features is not None and features not in FEATURE_DTYPES:
+        raise ValueError(f"features {features!r}: expected one of {list(FEATURE_DTYPES)}")
     check_output_dir(out, is_scene_set, "a SceneSet")
     scenes, report = import_offline(offline_dir, **kwargs)
+    scenes = with_features(scenes, features)
     save(scenes, out, validate=False)  # import_offline validated it
     return scenes, report
 
@@ -208,7 +206,7 @@ def format_report(report: dict) -> str:
     """A few human lines about an import."""
     s = report["seconds"]
     lines = [(f"imported {report['num_scenes']} scene(s), {report['states']} states "
-              f"(S padded to {report['padded_states']}), global 7x7x{report['global_dim']}, "
+              f"(largest room {report['max_states']}), global 7x7x{report['global_dim']}, "
               f"appearance {NUM_CATEGORIES}x{report['appearance_dim']} from "
               f"{report['detection_rows']}-row detections; json {s['json']:.1f} s, features "
               f"{s['features']:.1f} s, expert {s['expert']:.1f} s")]
