@@ -55,13 +55,13 @@ def load_policy(policy: str | None = None, run_dir: str | None = None,
         options = ", ".join("--" + f.replace("_", "-") for f in TEST_TIME_FIELDS)
         raise UserError(f"test-time TPN options ({options}) need --tpn TPN_RUN_DIR")
     if tpn_dir is not None:
-        from orgnav_jax.tpn.policy import default_batch_size, load_tpn_policy
+        from orgnav_jax.tpn.test_time import default_batch_size, load_tpn_policy
         pol, params, run_cfg, tpn_cfg = load_tpn_policy(tpn_dir, **test_time)
         return LoadedPolicy(pol, params, f"{Path(tpn_cfg.base_dir).name}-{pol.name}",
                             run_cfg.scene_preset, run_cfg.scenes_dir, run_cfg.scene_seed,
                             default_batch_size(params["base"], tpn_cfg))
     if run_dir is not None:
-        from orgnav_jax.training.policy import load_run_policy
+        from orgnav_jax.training.runs import load_run_policy
         pol, params, run_cfg = load_run_policy(run_dir)
         return LoadedPolicy(pol, params, Path(run_dir).name, run_cfg.scene_preset,
                             run_cfg.scenes_dir, run_cfg.scene_seed)

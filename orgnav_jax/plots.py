@@ -176,13 +176,13 @@ def run_adjacency(run_dir: str | Path, best: bool = True) -> tuple[np.ndarray, s
     cfg = load_config(run_dir)
     if cfg.model == "dsp":
         from orgnav_jax.models.org import cooccurrence_adjacency
-        from orgnav_jax.training.policy import scenes_for
+        from orgnav_jax.training.runs import scenes_for
         present = np.asarray(scenes_for(cfg).split_view("train").present)
         return cooccurrence_adjacency(present), "dsp"
     if cfg.model != "org":
         raise ValueError(f"run {run_dir} trains model {cfg.model!r}, which has no adjacency "
                          "matrix (only 'org' learns one; 'dsp' uses a fixed prior)")
-    from orgnav_jax.training.policy import load_run_policy
+    from orgnav_jax.training.runs import load_run_policy
     _, params, cfg = load_run_policy(run_dir, best=best)
     return find_adjacency(params), cfg.model
 

@@ -15,11 +15,11 @@ from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config
 from orgnav_jax.tpn.fast_weights import policy_ce, sgd_step, split_scope, split_step
-from orgnav_jax.tpn.policy import build_tpn, init_tpn_params, load_tpn_policy
+from orgnav_jax.tpn.test_time import build_tpn, init_tpn_params, load_tpn_policy
 from orgnav_jax.tpn.stage2 import collect, train_tpn, tpn_loss
 from orgnav_jax.training.config import get_config
 from orgnav_jax.training.loop import train
-from orgnav_jax.training.policy import load_run_model, model_policy
+from orgnav_jax.training.runs import load_run_model, model_policy
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +52,7 @@ def tpn_run(base_run, tmp_path_factory):
 @pytest.fixture(scope="module")
 def loaded(base_run):
     model, params, cfg = load_run_model(base_run)
-    from orgnav_jax.training.policy import scenes_for
+    from orgnav_jax.training.runs import scenes_for
     test = scenes_for(cfg).split_view("test").to_device()
     return model, params, cfg, test
 

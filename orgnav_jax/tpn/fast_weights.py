@@ -21,7 +21,7 @@ it). Only `per_env` is differentiated and re-run after an update.
     logits, carry, h = per_env(scoped, rest, features_b)               # one env
     scoped = sgd_step(per_env, scoped, rest, features_b, target, lr)   # CE(policy, target)
 
-    fw = DenseFastWeights(model, "all")        # the step interface tpn/policy.py drives
+    fw = DenseFastWeights(model, "all")        # the step interface tpn/test_time.py drives
     fast = fw.init(B, variables)
     logits, lstm, fast, aux = fw.step(variables, fast, inputs, carry, decide, lr)
 """

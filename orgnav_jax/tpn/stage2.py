@@ -27,7 +27,7 @@ from orgnav_jax.evaluation import where_rows
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
-from orgnav_jax.tpn.policy import build_tpn, init_tpn_params
+from orgnav_jax.tpn.test_time import build_tpn, init_tpn_params
 from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
 from orgnav_jax.training.run_dir import open_run_dir
@@ -132,7 +132,7 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
     """Train (or resume) the TPN of cfg.run_dir on its frozen base -> summary dict.
     The best-on-val TPN (accuracy on the val episodes' deadlock steps) is kept."""
     from orgnav_jax.training.config import load_config
-    from orgnav_jax.training.policy import load_run_model, preflight_tpn
+    from orgnav_jax.training.runs import load_run_model, preflight_tpn
     # config ranges, scenes, memory, then the base's checkpoint: before anything is written
     scenes = preflight_tpn(cfg, load_config(cfg.base_dir))
     model, base_params, nav_cfg = load_run_model(cfg.base_dir)
