@@ -134,7 +134,7 @@ def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float
         return jnp.argmax(logits, -1).astype(jnp.int32), TPNCarry(
             lstm, fast, memory, vision, updates, steps)
 
-    return Policy(name, init, act)
+    return Policy(name, init, act, record=lambda carry: {"tpn_updates": carry.updates})
 
 
 def load_tpn_policy(run_dir: str | Path, **test_time):
