@@ -40,6 +40,7 @@ from orgnav_jax.compile_cache import compiled_once
 from orgnav_jax.constants import CATEGORIES, DONE, NUM_ACTIONS, ROOM_TYPES
 from orgnav_jax.episodes import EpisodeSet
 from orgnav_jax.scenes.sceneset import SceneSet
+from orgnav_jax.tree import where_rows
 
 LONG_PATH = 5  # the paper's "L>=5" columns
 OUTCOMES = ("success", "wrong_done", "timeout")  # per-episode flags, a partition
@@ -73,12 +74,6 @@ def expert_policy() -> Policy:
         target = jnp.argmax(obs.target, axis=-1)
         return scenes.expert_action[obs.scene, obs.state, target].astype(jnp.int32), carry
     return Policy("Expert", lambda batch, _: (), act)
-
-
-def where_rows(mask, new, old):
-    """Per-row select between two pytrees with leading axis B: new where mask (B,)."""
-    return jax.tree_util.tree_map(
-        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
 @functools.partial(jax.jit, static_argnames=("policy", "params", "num_steps", "trace"))
