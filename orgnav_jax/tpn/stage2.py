@@ -23,7 +23,6 @@ from flax import struct
 
 from orgnav_jax import env
 from orgnav_jax.errors import choose
-from orgnav_jax.evaluation import where_rows
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
@@ -31,6 +30,7 @@ from orgnav_jax.tpn.test_time import build_tpn, init_tpn_params
 from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
 from orgnav_jax.training.run_dir import open_run_dir
+from orgnav_jax.tree import where_rows
 
 
 @struct.dataclass
