@@ -36,12 +36,13 @@ def il_mask(mode: str, step: str, traj):
     failed); "cause" is the step whose action failed, led into a visited state or was
     Done (the release's choice). Either way the label is the expert's action at the
     state where the supervised action was chosen."""
-    ones = jnp.ones(traj.action.shape, bool)
-    by_step = {"deadlock": {"state": traj.obs.deadlock, "cause": traj.caused},
-               "failed": {"state": traj.last_failed, "cause": traj.failed}}
-    flags = choose({"none": ~ones, "all": ones,
+    shape = traj.action.shape
+    by_step = {"deadlock": {"state": lambda: traj.obs.deadlock, "cause": lambda: traj.caused},
+               "failed": {"state": lambda: traj.last_failed, "cause": lambda: traj.failed}}
+    flags = choose({"none": lambda: jnp.zeros(shape, bool),
+                    "all": lambda: jnp.ones(shape, bool),
                     **{m: choose(s, step, "IL step") for m, s in by_step.items()}},
-                   mode, "IL mode")
+                   mode, "IL mode")()
     return flags.astype(jnp.float32)
 
 
