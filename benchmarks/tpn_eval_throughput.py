@@ -48,9 +48,9 @@ from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import build_model, init_params
 from orgnav_jax.scenes import load_or_build
 from orgnav_jax.tpn.config import get_tpn_config
-from orgnav_jax.tpn.policy import build_tpn, default_batch_size, init_tpn_params, tpn_policy
+from orgnav_jax.tpn.test_time import build_tpn, default_batch_size, init_tpn_params, tpn_policy
 from orgnav_jax.training.config import get_config
-from orgnav_jax.training.policy import model_policy
+from orgnav_jax.training.runs import model_policy
 
 # name -> (TPNConfig fields, fast-weights impl)
 VARIANTS = {"tpn": ({"scope": "actor"}, "auto"),

@@ -55,13 +55,13 @@ def load_policy(policy: str | None = None, run_dir: str | None = None,
         options = ", ".join("--" + f.replace("_", "-") for f in TEST_TIME_FIELDS)
         raise UserError(f"test-time TPN options ({options}) need --tpn TPN_RUN_DIR")
     if tpn_dir is not None:
-        from orgnav_jax.tpn.policy import default_batch_size, load_tpn_policy
+        from orgnav_jax.tpn.test_time import default_batch_size, load_tpn_policy
         pol, params, run_cfg, tpn_cfg = load_tpn_policy(tpn_dir, **test_time)
         return LoadedPolicy(pol, params, f"{Path(tpn_cfg.base_dir).name}-{pol.name}",
                             run_cfg.scene_preset, run_cfg.scenes_dir, run_cfg.scene_seed,
                             default_batch_size(params["base"], tpn_cfg))
     if run_dir is not None:
-        from orgnav_jax.training.policy import load_run_policy
+        from orgnav_jax.training.runs import load_run_policy
         pol, params, run_cfg = load_run_policy(run_dir)
         return LoadedPolicy(pol, params, Path(run_dir).name, run_cfg.scene_preset,
                             run_cfg.scenes_dir, run_cfg.scene_seed)
@@ -149,19 +149,24 @@ def evaluate_policy(policy: str = "random", split: str = "test", scene_preset: s
     return evaluate(loaded, split, **kw)
 
 
-def evaluate_run(run_dir: str | Path, split: str = "test", **kw) -> dict:
-    """evaluate() of a run directory: a training run's best-on-val model, or a stage-2
-    run's base with TPN's test-time updates (kw may hold test-time fields then)."""
-    from orgnav_jax.tpn.config import TEST_TIME_FIELDS
-    test_time = {k: kw.pop(k) for k in list(kw) if k in TEST_TIME_FIELDS}
+def load_run(run_dir: str | Path, **test_time) -> LoadedPolicy:
+    """The policy of a run directory: a training run's best-on-val model, or a stage-2
+    run's base with TPN's test-time updates (test_time: TEST_TIME_FIELDS overrides)."""
     config = Path(run_dir) / "config.json"
     try:
         stage = json.loads(config.read_text()).get("stage", "nav")
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):
         stage = "nav"                    # load_config names what is wrong
-    loaded = (load_policy(tpn_dir=str(run_dir), **test_time) if stage == "tpn"
-              else load_policy(run_dir=str(run_dir), **test_time))
-    return evaluate(loaded, split, **kw)
+    return (load_policy(tpn_dir=str(run_dir), **test_time) if stage == "tpn"
+            else load_policy(run_dir=str(run_dir), **test_time))
+
+
+def evaluate_run(run_dir: str | Path, split: str = "test", **kw) -> dict:
+    """evaluate() of a run directory's policy (load_run; kw may hold test-time fields
+    for a TPN run)."""
+    from orgnav_jax.tpn.config import TEST_TIME_FIELDS
+    test_time = {k: kw.pop(k) for k in list(kw) if k in TEST_TIME_FIELDS}
+    return evaluate(load_run(run_dir, **test_time), split, **kw)
 
 
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:

@@ -1,7 +1,7 @@
 """Evaluate a policy on a split's fixed episode set: `python -m orgnav_jax.evaluate`.
 
     python -m orgnav_jax.evaluate --policy random --split test
-    python -m orgnav_jax.evaluate --policy expert --split val --preset tiny
+    python -m orgnav_jax.evaluate --policy expert --split val --scene-preset tiny
     python -m orgnav_jax.evaluate --episodes runs/eval/episodes-small-test.json ...
     python -m orgnav_jax.evaluate --checkpoint runs/baseline-small --split test
     python -m orgnav_jax.evaluate --tpn runs/baseline-small/tpn --when all   # TPN-all
@@ -48,7 +48,8 @@ def parser() -> argparse.ArgumentParser:
     who.add_argument("--tpn", metavar="TPN_RUN_DIR",
                      help="a stage-2 run: its base model with TPN's test-time updates")
     ap.add_argument("--split", choices=("val", "test"), default="test")
-    ap.add_argument("--preset", default="small", help="scene preset (built once, cached)")
+    ap.add_argument("--scene-preset", "--preset", dest="preset", default="small",
+                    help="scene preset (built once, cached); --preset is the old name")
     ap.add_argument("--scenes", metavar="DIR", help="a saved SceneSet directory instead")
     ap.add_argument("--episodes", metavar="FILE", help="replay this episode file")
     ap.add_argument("--episode-seed", type=int, default=0)

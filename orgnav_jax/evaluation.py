@@ -40,6 +40,7 @@ from orgnav_jax.compile_cache import compiled_once
 from orgnav_jax.constants import CATEGORIES, DONE, NUM_ACTIONS, ROOM_TYPES
 from orgnav_jax.episodes import EpisodeSet
 from orgnav_jax.scenes.sceneset import SceneSet
+from orgnav_jax.tree import where_rows
 
 LONG_PATH = 5  # the paper's "L>=5" columns
 OUTCOMES = ("success", "wrong_done", "timeout")  # per-episode flags, a partition
@@ -53,6 +54,9 @@ class Policy:
     name: str
     init: Callable[[int, Any], Any]
     act: Callable[..., tuple[jax.Array, Any]]
+    # record(carry) -> dict of (B,) arrays kept per step by trace_episodes (e.g. TPN's
+    # update count); None: nothing beyond the env's trace
+    record: Callable[[Any], dict] | None = None
 
 
 @compiled_once
@@ -72,17 +76,13 @@ def expert_policy() -> Policy:
     return Policy("Expert", lambda batch, _: (), act)
 
 
-def where_rows(mask, new, old):
-    """Per-row select between two pytrees with leading axis B: new where mask (B,)."""
-    return jax.tree_util.tree_map(
-        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
-
-
-@functools.partial(jax.jit, static_argnames=("policy", "params", "num_steps"))
+@functools.partial(jax.jit, static_argnames=("policy", "params", "num_steps", "trace"))
 def _run_batch(policy: Policy, policy_params, scenes: SceneSet, scene, start, target,
-               key, params: env.EnvParams, num_steps: int):
+               key, params: env.EnvParams, num_steps: int, trace: bool = False):
     """Episodes (B,) -> dict of (B,) arrays: success, wrong_done, timeout (bool),
-    path_len, steps, revisits, failed_moves (int32), finished (bool)."""
+    path_len, steps, revisits, failed_moves (int32), finished (bool); with trace=True
+    also "trace": per-step (num_steps, B) arrays: state (before the step), action,
+    deadlock, running, and the policy's record(carry)."""
     batch = scene.shape[0]
     state = jax.vmap(env.start_episode, in_axes=(0, 0, 0, None, None))(
         scene, start, target, scenes, params)
@@ -100,17 +100,35 @@ def _run_batch(policy: Policy, policy_params, scenes: SceneSet, scene, start, ta
              "timeout": c["timeout"] | (running & done & ~said_done),
              "revisits": c["revisits"] + (running & moved_back).astype(jnp.int32),
              "failed_moves": c["failed_moves"] + (running & info["failed"]).astype(jnp.int32)}
+        record = None
+        if trace:
+            record = {"state": state.state, "action": action, "deadlock": obs.deadlock,
+                      "running": running, **(policy.record(pcarry) if policy.record else {})}
         state, obs = where_rows(running, (state2, obs2), (state, obs))
-        return (state, obs, pcarry, running & ~done, jnp.zeros_like(fresh), c), None
+        return (state, obs, pcarry, running & ~done, jnp.zeros_like(fresh), c), record
 
     flag, count = jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32)
     counters = {"success": flag, "wrong_done": flag, "timeout": flag,
                 "revisits": count, "failed_moves": count}
     init = (state, obs, policy.init(batch, policy_params), jnp.ones(batch, bool),
             jnp.ones(batch, bool), counters)
-    (state, _, _, running, _, c), _ = jax.lax.scan(
+    (state, _, _, running, _, c), steps = jax.lax.scan(
         body, init, jax.random.split(key, num_steps))
-    return {**c, "path_len": state.path_len, "steps": state.steps, "finished": ~running}
+    out = {**c, "path_len": state.path_len, "steps": state.steps, "finished": ~running}
+    return dict(out, trace=steps) if trace else out
+
+
+def trace_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: EpisodeSet,
+                   params: env.EnvParams, seed: int = 0) -> dict[str, np.ndarray]:
+    """A few episodes step by step (one batch of the evaluation scan) -> numpy arrays:
+    the outcome per episode (E,) as run_episodes, and per step (E, T): state (the flat
+    state before the step), action, deadlock, running, and what policy.record keeps."""
+    arrays = [jnp.asarray(a) for a in (episodes.scene, episodes.start, episodes.target)]
+    res = _run_batch(policy, policy_params, scenes, *arrays, jax.random.PRNGKey(seed),
+                     params, max(params.max_steps), trace=True)
+    out = {k: np.asarray(v) for k, v in res.items() if k != "trace"}
+    out.update({k: np.asarray(v).T for k, v in res["trace"].items()})
+    return out
 
 
 def run_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: EpisodeSet,

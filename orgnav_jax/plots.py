@@ -1,4 +1,12 @@
-"""Pictures of trained runs: the ORG adjacency as a category heat map; learning curves.
+"""Pictures of trained runs: the ORG adjacency as a category heat map; learning curves;
+one episode from above.
+
+    python -m orgnav_jax.plots episode RUN_DIR [--episode K] [--split test] [--out PNG]
+
+draws the room of episode K of the split's seeded episode set (or of --episodes FILE)
+from above: every position, where the target is in view, the agent's path from start to
+end (green star: success; red: wrong Done or timeout), its deadlock steps (x) and, for a
+TPN run, the steps where the test-time update changed the policy (orange circles).
 
     python -m orgnav_jax.plots adjacency RUN_DIR [--out PNG] [--latest]
 
@@ -176,13 +184,13 @@ def run_adjacency(run_dir: str | Path, best: bool = True) -> tuple[np.ndarray, s
     cfg = load_config(run_dir)
     if cfg.model == "dsp":
         from orgnav_jax.models.org import cooccurrence_adjacency
-        from orgnav_jax.training.policy import scenes_for
+        from orgnav_jax.training.runs import scenes_for
         present = np.asarray(scenes_for(cfg).split_view("train").present)
         return cooccurrence_adjacency(present), "dsp"
     if cfg.model != "org":
         raise ValueError(f"run {run_dir} trains model {cfg.model!r}, which has no adjacency "
                          "matrix (only 'org' learns one; 'dsp' uses a fixed prior)")
-    from orgnav_jax.training.policy import load_run_policy
+    from orgnav_jax.training.runs import load_run_policy
     _, params, cfg = load_run_policy(run_dir, best=best)
     return find_adjacency(params), cfg.model
 
@@ -359,6 +367,80 @@ def plot_curves(run_dirs: Iterable[str | Path] | Mapping[str, Sequence[str | Pat
     return data
 
 
+def trace_run_episode(run_dir: str | Path, episode: int = 0, split: str = "test",
+                      episodes_file: str | None = None, episode_seed: int = 0,
+                      per_room_type: int | None = None) -> dict:
+    """One episode of a run's policy (a training run, or a TPN run with its test-time
+    updates), step by step -> {"trace": evaluation.trace_episodes of it, "scenes": the
+    split's SceneSet, "episode": the one-episode EpisodeSet, "name": the policy}.
+    The episode is number `episode` of the split's seeded set (as evaluate samples it),
+    or of `episodes_file`."""
+    from orgnav_jax import api, env, evaluation
+    from orgnav_jax.constants import EPISODES_PER_ROOM_TYPE
+    from orgnav_jax.episodes import load_episodes, sample_episodes
+    from orgnav_jax.scenes.cache import device_split
+    loaded = api.load_run(run_dir)
+    scenes = device_split(loaded.scene_preset, loaded.scene_seed, loaded.scenes_dir, split)
+    episodes = (load_episodes(episodes_file, scenes) if episodes_file else
+                sample_episodes(scenes, per_room_type or EPISODES_PER_ROOM_TYPE,
+                                seed=episode_seed, split=split))
+    if not 0 <= episode < len(episodes):
+        raise ValueError(f"--episode {episode}: the {split} set has episodes 0..."
+                         f"{len(episodes) - 1}")
+    one = episodes.subset(np.array([episode]))
+    trace = evaluation.trace_episodes(loaded.policy, loaded.params, scenes, one,
+                                      env.EnvParams.evaluation())
+    return {"trace": trace, "scenes": scenes, "episode": one, "name": loaded.policy.name}
+
+
+def plot_episode(run_dir: str | Path, episode: int = 0, split: str = "test",
+                 out: str | Path | None = None, **kw) -> Path:
+    """Top view of one episode of a run (trace_run_episode): the room's positions, where
+    the target is in view, the agent's path from start to end, its deadlock steps and the
+    steps where TPN updated the policy -> the PNG path (default RUN_DIR/episode-K.png)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    got = trace_run_episode(run_dir, episode, split, **kw)
+    tr, scenes, one = got["trace"], got["scenes"], got["episode"]
+    n, target = int(one.scene[0]), int(one.target[0])
+    rows = scenes.state_slice(n)
+    pose = np.asarray(scenes.pose)
+    room_xz = pose[rows, :2]
+    seen = np.asarray(scenes.visible)[rows, target]
+    run = tr["running"][0]
+    states = tr["state"][0][run]
+    path = pose[states, :2]
+    outcome = next(k for k in ("success", "wrong_done", "timeout") if tr[k][0])
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.scatter(*np.unique(room_xz, axis=0).T, s=6, c="0.85", label="positions")
+    ax.scatter(*np.unique(room_xz[seen], axis=0).T, s=14, c="tab:green",
+               label=f"{CATEGORIES[target]} in view")
+    ax.plot(*path.T, "-", c="tab:blue", lw=1.5, alpha=0.8, label="path")
+    ax.scatter(*path[0], marker="s", s=70, c="tab:blue", label="start", zorder=3)
+    ax.scatter(*path[-1], marker="*", s=160, zorder=3,
+               c="tab:green" if outcome == "success" else "tab:red", label=f"end: {outcome}")
+    dead = tr["deadlock"][0][run]
+    if dead.any():
+        ax.scatter(*path[dead].T, marker="x", s=50, c="tab:red", label="deadlock step")
+    if "tpn_updates" in tr:
+        updated = np.diff(tr["tpn_updates"][0], prepend=0)[run] > 0
+        if updated.any():
+            ax.scatter(*path[updated].T, s=90, facecolors="none", edgecolors="tab:orange",
+                       lw=1.5, label="TPN update")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("z (m)")
+    ax.set_title(f"{got['name']}: {scenes.scene_names[n]}, target {CATEGORIES[target]}, "
+                 f"{int(run.sum())} steps", fontsize=9)
+    ax.legend(fontsize=7, loc="best")
+    out = Path(out) if out else Path(run_dir) / f"episode-{episode}.png"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m orgnav_jax.plots", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -368,6 +450,14 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="PNG path (default RUN_DIR/adjacency.png)")
     p.add_argument("--latest", action="store_true",
                    help="use the latest checkpoint instead of the best-on-val one")
+    e = sub.add_parser("episode", help="top view of one episode of a run (path, target, "
+                                       "deadlock steps, TPN updates)")
+    e.add_argument("run_dir", help="a training run or a TPN (stage 2) run directory")
+    e.add_argument("--episode", type=int, default=0, help="index in the episode set")
+    e.add_argument("--split", choices=("val", "test"), default="test")
+    e.add_argument("--episodes", default=None, help="an episode file (default: the seeded "
+                   "set evaluate samples)")
+    e.add_argument("--out", default=None, help="PNG path (default RUN_DIR/episode-K.png)")
     c = sub.add_parser("curves", help="val learning curves of runs, mean and band over seeds")
     c.add_argument("runs", nargs="+", metavar="RUN_DIR",
                    help="training run directories (or ROW=RUN_DIR); NAME-s<seed> -> row NAME")
@@ -378,6 +468,11 @@ def main(argv=None) -> int:
     c.add_argument("--band", choices=sorted(BANDS), default="minmax",
                    help="shaded band: min-max over seeds (default) or mean +- std")
     args = ap.parse_args(argv)
+    if args.cmd == "episode":
+        out = plot_episode(args.run_dir, args.episode, args.split, args.out,
+                           episodes_file=args.episodes)
+        print(f"wrote {out}")
+        return 0
     if args.cmd == "curves":
         rows = group_runs(args.runs)
         out = Path(args.out) if args.out else next(iter(rows.values()))[0].parent / "curves.png"

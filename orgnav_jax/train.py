@@ -28,7 +28,7 @@ from pathlib import Path
 from orgnav_jax import api, evaluate
 from orgnav_jax.errors import UserError, run_cli
 from orgnav_jax.training.config import (
-    PRESETS, add_config_arguments, get_config, load_config, overrides_from_args)
+    TRAIN_PRESETS, add_config_arguments, get_config, load_config, overrides_from_args)
 from orgnav_jax.training.run_dir import is_run_dir
 
 
@@ -56,7 +56,7 @@ TPN_PIPELINES = {"baseline_tpn": ("baseline", 1e-3), "full": ("org_il", 1e-3)}
 
 def parser() -> argparse.ArgumentParser:
     ap = _parser("python -m orgnav_jax.train", "nav")
-    ap.add_argument("--preset", default="small", choices=sorted(PRESETS) + sorted(TPN_PIPELINES),
+    ap.add_argument("--preset", default="small", choices=sorted(TRAIN_PRESETS) + sorted(TPN_PIPELINES),
                     help="a training preset; baseline_tpn and full (ORG + IL + TPN) also train "
                          "the TPN (stage 2) on the result")
     ap.add_argument("--tpn-lr", type=float, default=None,

@@ -130,7 +130,7 @@ def test_a_run_directory_in_use_is_refused_and_a_stale_lock_taken_over(
 def _restore(run_dir):
     from orgnav_jax.models import build_model
     from orgnav_jax.training.checkpoints import RunCheckpoints
-    from orgnav_jax.training.policy import scenes_for
+    from orgnav_jax.training.runs import scenes_for
     from orgnav_jax.training.update import init_runner, make_optimizer
     cfg = load_config(run_dir)
     scenes = scenes_for(cfg).split_view("train").to_device()

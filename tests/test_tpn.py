@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
-import re
-
 import pytest
 
 from orgnav_jax import env, evaluate, evaluation
@@ -15,11 +16,11 @@ from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config
 from orgnav_jax.tpn.fast_weights import policy_ce, sgd_step, split_scope, split_step
-from orgnav_jax.tpn.policy import build_tpn, init_tpn_params, load_tpn_policy
+from orgnav_jax.tpn.test_time import build_tpn, init_tpn_params, load_tpn_policy
 from orgnav_jax.tpn.stage2 import collect, train_tpn, tpn_loss
 from orgnav_jax.training.config import get_config
 from orgnav_jax.training.loop import train
-from orgnav_jax.training.policy import load_run_model, model_policy
+from orgnav_jax.training.runs import load_run_model, model_policy
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +53,7 @@ def tpn_run(base_run, tmp_path_factory):
 @pytest.fixture(scope="module")
 def loaded(base_run):
     model, params, cfg = load_run_model(base_run)
-    from orgnav_jax.training.policy import scenes_for
+    from orgnav_jax.training.runs import scenes_for
     test = scenes_for(cfg).split_view("test").to_device()
     return model, params, cfg, test
 
@@ -238,3 +239,20 @@ def test_bad_tpn_input_is_a_clear_error(base_run, tpn_run, tmp_path, cli_error):
     with RunLock(tpn_run):              # another process trains there: refused, named
         assert "is in use by process" in cli_error(
             train_cli.main, ["--stage", "tpn", "--run-dir", tpn_run, "--resume"])
+
+
+def test_episode_traces_and_pictures_of_a_run_and_a_tpn_run(base_run, tpn_run, tmp_path):
+    from orgnav_jax import plots
+    for run in (base_run, tpn_run):
+        got = plots.trace_run_episode(run, 1, "test", per_room_type=5)
+        tr = got["trace"]
+        taken = int(tr["running"][0].sum())
+        assert taken == int(tr["steps"][0]) >= 1            # one row per action taken
+        assert sum(bool(tr[k][0]) for k in ("success", "wrong_done", "timeout")) == 1
+        rows = got["scenes"].state_slice(int(got["episode"].scene[0]))
+        assert np.all((tr["state"][0][:taken] >= rows.start) &
+                      (tr["state"][0][:taken] < rows.stop))  # the path stays in its room
+        png = tmp_path / f"{Path(run).name}.png"
+        assert plots.main(["episode", str(run), "--episode", "1", "--out", str(png)]) == 0
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
+    assert np.all(np.diff(tr["tpn_updates"][0]) >= 0)        # TPN: a running count

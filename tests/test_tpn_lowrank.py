@@ -16,7 +16,7 @@ from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import build_model, init_params, model_inputs
 from orgnav_jax.tpn.config import get_tpn_config, tpn_overrides_from_args
 from orgnav_jax.tpn.lowrank import SLOT_BLOCK, make_plan, plan_floats
-from orgnav_jax.tpn.policy import (build_tpn, default_batch_size, fast_weights,
+from orgnav_jax.tpn.test_time import (build_tpn, default_batch_size, fast_weights,
                                    init_tpn_params, tpn_policy)
 from orgnav_jax.training.config import get_config
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from orgnav_jax.tpn import deadlock as vd
-from orgnav_jax.models import tpn
+from orgnav_jax.models import tpn_net as tpn
 
 H = 8
 ATOL = 1e-5

@@ -16,7 +16,7 @@ from orgnav_jax.training import loop
 from orgnav_jax.training.checkpoints import RunCheckpoints
 from orgnav_jax.training.config import get_config, load_config
 from orgnav_jax.training.losses import gae
-from orgnav_jax.training.policy import load_run_policy
+from orgnav_jax.training.runs import load_run_policy
 
 
 @pytest.fixture(scope="module")

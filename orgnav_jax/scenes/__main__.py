@@ -21,7 +21,7 @@ from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.builder import FORMAT_VERSION, build
 from orgnav_jax.scenes.layout import ROOM_SIZE_PROFILES, generate_room, render_ascii
 from orgnav_jax.scenes.offline import cli as offline_cli
-from orgnav_jax.scenes.presets import PRESETS, get_preset
+from orgnav_jax.scenes.presets import SCENE_PRESETS, get_preset
 from orgnav_jax.scenes.raw import build_raw_to
 from orgnav_jax.scenes.storage import disk_size, is_scene_set, load, save
 from orgnav_jax.scenes.summary import format_summary, summarize
@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     b = sub.add_parser("build", help="generate a benchmark and save it")
-    b.add_argument("--preset", default="small", help=f"one of {sorted(PRESETS)}")
+    b.add_argument("--preset", default="small", help=f"one of {sorted(SCENE_PRESETS)}")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--out", required=True, help="output directory (an existing SceneSet is "
                    "replaced atomically; any other non-empty directory is refused)")
@@ -67,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command in offline_cli.COMMANDS:
         return offline_cli.run(args)
     if args.command == "build":
-        if args.preset not in PRESETS:
-            parser.error(f"unknown preset {args.preset!r}: expected one of {sorted(PRESETS)}")
+        if args.preset not in SCENE_PRESETS:
+            parser.error(f"unknown preset {args.preset!r}: expected one of {sorted(SCENE_PRESETS)}")
         check_output_dir(args.out, is_scene_set, "a SceneSet")  # before the build
         overrides = {k: v for k, v in (("rooms_per_type", tuple(args.rooms or ()) or None),
                                        ("num_rooms", args.num_rooms),

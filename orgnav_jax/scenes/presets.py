@@ -79,7 +79,7 @@ def _round_robin(lists: list[list]) -> list:
     return out
 
 
-PRESETS: dict[str, ScenePreset] = {
+SCENE_PRESETS: dict[str, ScenePreset] = {
     # The whole pipeline learns on 2 CPU cores in minutes.
     "small": ScenePreset("small", (20, 5, 5), global_dim=32, appearance_dim=32),
     # The paper's widths: ResNet-18 512x7x7 map, 512-d appearance features.
@@ -99,10 +99,10 @@ def get_preset(name: str | ScenePreset, **overrides) -> ScenePreset:
     """A preset by name, with fields replaced by `overrides`; clear errors otherwise."""
     if isinstance(name, ScenePreset):
         preset = name
-    elif name in PRESETS:
-        preset = PRESETS[name]
+    elif name in SCENE_PRESETS:
+        preset = SCENE_PRESETS[name]
     else:
-        raise ValueError(f"unknown scene preset {name!r}: expected one of {sorted(PRESETS)}")
+        raise ValueError(f"unknown scene preset {name!r}: expected one of {sorted(SCENE_PRESETS)}")
     fields = {f.name for f in dataclasses.fields(ScenePreset)}
     bad = sorted(set(overrides) - fields)
     if bad:

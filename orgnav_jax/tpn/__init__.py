@@ -1,3 +1,3 @@
-"""The tentative policy network's stage 2 and test-time update (the network itself is
-orgnav_jax.models.tpn): config, deadlock detection, per-episode fast weights, the
-test-time Policy and stage-2 training."""
+"""The tentative policy network (TPN) around a trained navigation model: its config,
+the deadlock detectors, stage-2 training (stage2.py), the per-episode fast weights and
+the test-time policy (test_time.py). The network itself is orgnav_jax.models.tpn_net."""

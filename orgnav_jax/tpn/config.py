@@ -10,13 +10,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 from pathlib import Path
 from typing import Literal, get_args
 
 from orgnav_jax.training.config import (
     CONFIG_VERSION, COUNT, INT32_MAX, POSITIVE, READABLE_VERSIONS, SEED, Range, _parse_bool,
-    check_ranges, check_types)
+    budget_notice, check_ranges, check_types)
 from orgnav_jax.training.run_dir import read_config
 
 Scope = Literal["actor", "trunk", "all"]     # parameters a test-time update changes
@@ -100,25 +99,10 @@ class TPNConfig:
     def num_updates(self) -> int:
         return max(1, self.total_episodes // self.num_envs)
 
-    @property
-    def num_chunks(self) -> int:
-        """Jitted chunks a stage-2 run does: whole chunks of updates_per_chunk updates."""
-        return math.ceil(self.num_updates / self.updates_per_chunk)
-
-    @property
-    def episodes_run(self) -> int:
-        """Episodes a stage-2 run trains on: num_chunks x updates_per_chunk x num_envs."""
-        return self.num_chunks * self.updates_per_chunk * self.num_envs
-
     def budget_notice(self) -> str | None:
         """A one-line note when the episodes run differ from total_episodes, else None."""
-        run = self.episodes_run
-        if run == self.total_episodes:
-            return None
-        way = "up" if run > self.total_episodes else "down"
-        return (f"note: total_episodes {self.total_episodes:,} rounds {way} to {run:,} "
-                f"(whole chunks of {self.updates_per_chunk} update"
-                f"{'s' * (self.updates_per_chunk != 1)} x {self.num_envs} episodes)")
+        return budget_notice("total_episodes", self.total_episodes, self.num_envs,
+                             self.updates_per_chunk, f"{self.num_envs} episodes")
 
     def validate(self) -> "TPNConfig":
         """Check every field's type and range; ValueError naming the field, its value and

@@ -21,7 +21,7 @@ it). Only `per_env` is differentiated and re-run after an update.
     logits, carry, h = per_env(scoped, rest, features_b)               # one env
     scoped = sgd_step(per_env, scoped, rest, features_b, target, lr)   # CE(policy, target)
 
-    fw = DenseFastWeights(model, "all")        # the step interface tpn/policy.py drives
+    fw = DenseFastWeights(model, "all")        # the step interface tpn/test_time.py drives
     fast = fw.init(B, variables)
     logits, lstm, fast, aux = fw.step(variables, fast, inputs, carry, decide, lr)
 """
@@ -34,7 +34,7 @@ import jax.numpy as jnp
 from flax import traverse_util
 
 from orgnav_jax.compile_cache import compiled_once
-from orgnav_jax.evaluation import where_rows
+from orgnav_jax.tree import tile, where_rows
 
 SCOPE_PATHS = {"actor": ("params", "trunk", "actor"),     # the policy head
                "trunk": ("params", "trunk"),              # everything above the encoder
@@ -117,10 +117,6 @@ def sgd_step(per_env, scoped, rest, features, target, lr):
 def scope_size(variables, scope: str) -> int:
     """Number of parameters one environment's fast weights hold."""
     return sum(int(v.size) for v in split_scope(variables, scope)[0].values())
-
-
-def tile(tree, batch: int):
-    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), tree)
 
 
 class DenseFastWeights:

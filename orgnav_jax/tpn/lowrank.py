@@ -65,9 +65,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct, traverse_util
 
-from orgnav_jax.evaluation import where_rows
 from orgnav_jax.models.trunk import LSTMGates
-from orgnav_jax.tpn.fast_weights import SCOPE_PATHS, _one, _unbatch, policy_ce_grad, tile
+from orgnav_jax.tpn.fast_weights import SCOPE_PATHS, _one, _unbatch, policy_ce_grad
+from orgnav_jax.tree import tile, where_rows
 
 SLOT_BLOCK = 10     # slots read per loop iteration: only blocks below the batch's max count
 # modules whose parameters never reach the policy logits (kept shared: zero gradient)

@@ -23,14 +23,14 @@ from flax import struct
 
 from orgnav_jax import env
 from orgnav_jax.errors import choose
-from orgnav_jax.evaluation import where_rows
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
-from orgnav_jax.tpn.policy import build_tpn, init_tpn_params
+from orgnav_jax.tpn.test_time import build_tpn, init_tpn_params
 from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
 from orgnav_jax.training.run_dir import open_run_dir
+from orgnav_jax.tree import where_rows
 
 
 @struct.dataclass
@@ -132,7 +132,7 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
     """Train (or resume) the TPN of cfg.run_dir on its frozen base -> summary dict.
     The best-on-val TPN (accuracy on the val episodes' deadlock steps) is kept."""
     from orgnav_jax.training.config import load_config
-    from orgnav_jax.training.policy import load_run_model, preflight_tpn
+    from orgnav_jax.training.runs import load_run_model, preflight_tpn
     # config ranges, scenes, memory, then the base's checkpoint: before anything is written
     scenes = preflight_tpn(cfg, load_config(cfg.base_dir))
     model, base_params, nav_cfg = load_run_model(cfg.base_dir)
@@ -143,7 +143,7 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
 
 def _train_tpn(cfg: TPNConfig, run_dir: Path, model, base_params, nav_cfg, scenes,
                resume: bool, progress: bool, stop_after_chunks: int | None) -> dict:
-    from orgnav_jax.training.policy import split_on_device
+    from orgnav_jax.training.runs import split_on_device
     train_scenes = split_on_device(nav_cfg, "train")    # shared device copies, as in
     val_scenes = split_on_device(nav_cfg, "val")        # training.loop
     tpn = build_tpn(nav_cfg, cfg.network)

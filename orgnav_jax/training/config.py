@@ -104,6 +104,20 @@ def check_ranges(cfg, ranges: dict[str, Range], prefix: str) -> None:
                              f"{rng.text(name, integer)}")
 
 
+def budget_notice(field: str, total: int, per_update: int, updates_per_chunk: int,
+                  per_update_text: str) -> str | None:
+    """The note when a budget (`field` = total) is not whole chunks of updates_per_chunk
+    updates of per_update env steps (episodes): a run does num_updates = max(1, total //
+    per_update) updates, rounded up to whole chunks (training/driver.py). None if equal."""
+    updates = max(1, total // per_update)
+    run = math.ceil(updates / updates_per_chunk) * updates_per_chunk * per_update
+    if run == total:
+        return None
+    return (f"note: {field} {total:,} rounds {'up' if run > total else 'down'} to {run:,} "
+            f"(whole chunks of {updates_per_chunk} update{'s' * (updates_per_chunk != 1)} "
+            f"x {per_update_text})")
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     # data
@@ -155,27 +169,11 @@ class TrainConfig:
     def num_updates(self) -> int:
         return max(1, self.total_env_steps // self.steps_per_update)
 
-    @property
-    def num_chunks(self) -> int:
-        """Jitted chunks a run does: whole chunks of updates_per_chunk updates."""
-        return math.ceil(self.num_updates / self.updates_per_chunk)
-
-    @property
-    def env_steps_run(self) -> int:
-        """Env steps a run does: num_chunks x updates_per_chunk x num_envs x rollout_len
-        (total_env_steps rounded to whole chunks of whole updates)."""
-        return self.num_chunks * self.updates_per_chunk * self.steps_per_update
-
     def budget_notice(self) -> str | None:
-        """A one-line note when the steps run differ from total_env_steps, else None."""
-        run = self.env_steps_run
-        if run == self.total_env_steps:
-            return None
-        way = "up" if run > self.total_env_steps else "down"
-        return (f"note: total_env_steps {self.total_env_steps:,} rounds {way} to {run:,} "
-                f"(whole chunks of {self.updates_per_chunk} update"
-                f"{'s' * (self.updates_per_chunk != 1)} x {self.num_envs} envs x "
-                f"{self.rollout_len} steps)")
+        """A one-line note when the env steps run differ from total_env_steps, else None."""
+        return budget_notice("total_env_steps", self.total_env_steps, self.steps_per_update,
+                             self.updates_per_chunk, f"{self.num_envs} envs x "
+                                                     f"{self.rollout_len} steps")
 
     def validate(self) -> "TrainConfig":
         """Check every field's type and range; ValueError naming the field, its value and
@@ -217,7 +215,7 @@ FIELD_RANGES: dict[str, Range] = {
     "success_reward": FINITE, "step_penalty": FINITE,
 }
 
-PRESETS: dict[str, dict] = {
+TRAIN_PRESETS: dict[str, dict] = {
     # Small widths: learns on 2 CPU cores in minutes (the default run).
     "small": {},
     # The paper's widths (512x7x7 ResNet map, 512-d appearance, LSTM 512).
@@ -243,20 +241,20 @@ TABLE_ROWS: dict[str, dict] = {
 # The rows use the release's dropout 0.25, which val preferred (docs/results.md); the
 # default run ("small") keeps 0.
 TABLE_DROPOUT = 0.25
-PRESETS.update({name: dict(row, dropout=TABLE_DROPOUT, run_dir=f"runs/{name}-small")
+TRAIN_PRESETS.update({name: dict(row, dropout=TABLE_DROPOUT, run_dir=f"runs/{name}-small")
                 for name, row in TABLE_ROWS.items()})
 
 
 def get_config(preset: str = "small", **overrides) -> TrainConfig:
     """A preset with fields replaced; clear errors for unknown presets or fields."""
-    if preset not in PRESETS:
+    if preset not in TRAIN_PRESETS:
         raise ValueError(f"unknown training preset {preset!r}: expected one of "
-                         f"{sorted(PRESETS)}")
+                         f"{sorted(TRAIN_PRESETS)}")
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     bad = sorted(set(overrides) - fields)
     if bad:
         raise ValueError(f"unknown config field(s) {bad}; fields are {sorted(fields)}")
-    return TrainConfig(**{**PRESETS[preset], **overrides}).validate()
+    return TrainConfig(**{**TRAIN_PRESETS[preset], **overrides}).validate()
 
 
 def load_config(run_dir: str | Path) -> TrainConfig:

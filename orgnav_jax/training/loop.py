@@ -21,7 +21,7 @@ from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import build_model
 from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.training.driver import NonFiniteLoss, Stage, run_stage  # noqa: F401 (API)
-from orgnav_jax.training.policy import model_policy, preflight, split_on_device
+from orgnav_jax.training.runs import model_policy, preflight, split_on_device
 from orgnav_jax.training.run_dir import open_run_dir
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 
@@ -56,7 +56,7 @@ def chunk_summary(m: dict) -> dict:
     return out
 
 
-def validate(model, params, val_scenes, val_episodes) -> dict:
+def evaluate_on_val(model, params, val_scenes, val_episodes) -> dict:
     """Greedy evaluation on the val episodes -> overall metrics."""
     return evaluation.evaluate(model_policy(model), params, val_scenes, val_episodes,
                                env.EnvParams.evaluation())["overall"]
@@ -87,7 +87,7 @@ def _train(cfg: TrainConfig, scenes, run_dir: Path, resume: bool, progress: bool
         per_chunk=cfg.updates_per_chunk * cfg.steps_per_update,
         total=cfg.num_updates * cfg.steps_per_update,
         chunk=lambda runner: train_chunk(runner, train_scenes), summarize=chunk_summary,
-        validate=lambda runner: validate(model, runner.params, val_scenes, val_episodes),
+        validate=lambda runner: evaluate_on_val(model, runner.params, val_scenes, val_episodes),
         score_keys=("success", "spl"), best_keys=("spl", "success"),
         progress_keys=("success",))
     return run_stage(stage, runner, cfg, run_dir, resume, progress, stop_after_chunks)

@@ -1,4 +1,5 @@
-"""Trained models as evaluation Policies (greedy actions), and loading them from a run."""
+"""What a training run needs and gives: its scenes (scenes_for, preflight checks), its
+model and params (load_run_model), and the model as a greedy evaluation Policy."""
 
 from __future__ import annotations
 

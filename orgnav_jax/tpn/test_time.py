@@ -40,7 +40,7 @@ from orgnav_jax.env import EnvParams
 from orgnav_jax.errors import choose
 from orgnav_jax.evaluation import Policy
 from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
-from orgnav_jax.models.tpn import TPN, memory_init, memory_record, memory_reset
+from orgnav_jax.models.tpn_net import TPN, memory_init, memory_record, memory_reset
 from orgnav_jax.tpn.config import (
     TestTime, TPNConfig, TPNNetwork, get_tpn_config, load_tpn_config)
 from orgnav_jax.tpn.deadlock import detect, detector_init
@@ -134,7 +134,7 @@ def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float
         return jnp.argmax(logits, -1).astype(jnp.int32), TPNCarry(
             lstm, fast, memory, vision, updates, steps)
 
-    return Policy(name, init, act)
+    return Policy(name, init, act, record=lambda carry: {"tpn_updates": carry.updates})
 
 
 def load_tpn_policy(run_dir: str | Path, **test_time):
@@ -143,7 +143,7 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
     test-time fields (config.TEST_TIME_FIELDS: tpn_lr, scope, when, target, deadlock,
     cosine_threshold, reset_every, tpn_train_mode)."""
     from orgnav_jax.training.checkpoints import RunCheckpoints
-    from orgnav_jax.training.policy import load_run_model
+    from orgnav_jax.training.runs import load_run_model
     cfg = load_tpn_config(run_dir)
     cfg = get_tpn_config(**{**dataclasses.asdict(cfg), **test_time})
     model, base_params, nav_cfg = load_run_model(cfg.base_dir)
