@@ -46,7 +46,7 @@ def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
 
 
 # options that may go with --resume --run-dir alone (the rest come from config.json)
-RESUME_OPTIONS = {"run_dir", "total_env_steps", "scenes_dir"}
+RESUME_OPTIONS = {"run_dir", "total_env_steps", "scenes_dir", "devices"}
 RESUME_TPN_OPTIONS = {"run_dir", "total_episodes", "base_dir"}
 
 # presets that run both stages: the navigation preset, then its TPN, evaluated with the

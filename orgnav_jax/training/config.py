@@ -15,10 +15,14 @@ import numbers
 from pathlib import Path
 from typing import Literal, get_args
 
-CONFIG_VERSION = 3   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step
-READABLE_VERSIONS = (2, 3)   # configs and checkpoints this version reads (same parameters)
+CONFIG_VERSION = 4   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step;
+                     # 4: devices, dtype (scale-out; same parameters and checkpoints)
+READABLE_VERSIONS = (2, 3, 4)   # configs and checkpoints this version reads
 # Fields a version-2 config lacks, with the values those runs were trained with.
 V2_DEFAULTS = {"il_norm": "masked_mean", "il_step": "state"}
+# Fields a version-3 (or 2) config lacks, with the values those runs were trained with
+# (one device, float32): equal to the dataclass defaults, kept here as the record.
+V3_DEFAULTS = {"devices": 0, "dtype": "float32"}
 
 # String modes are Literal types; their values (typing.get_args) are what validate
 # accepts, and every dispatch on them is a dict that raises on other values
@@ -28,7 +32,10 @@ ILStep = Literal["cause", "state"]   # supervise the action that led into a dead
                                      # the action taken at the deadlock state
 ILNorm = Literal["per_step", "masked_mean"]   # sum / (T*N) (as the release), or mean over
                                               # the IL steps
+DType = Literal["float32", "bfloat16"]   # the compute dtype of matmuls and activations
+                                       # (parameters and optimizer state stay float32)
 IL_MODES, IL_STEPS, IL_NORMS = get_args(ILMode), get_args(ILStep), get_args(ILNorm)
+DTYPES = get_args(DType)
 
 
 INT32_MAX = 2 ** 31 - 1
@@ -146,6 +153,10 @@ class TrainConfig:
     keep_checkpoints: int = 2
     seed: int = 0
     run_dir: str = "runs/baseline-small"
+    # scale-out (docs/scale_out.md)
+    devices: int = 0                  # devices per process the env axis is sharded over
+                                      # (0: all local devices); a resume may change it
+    dtype: DType = "float32"          # bfloat16: bf16 matmuls, float32 parameters
 
     @property
     def steps_per_update(self) -> int:
@@ -186,7 +197,7 @@ class TrainConfig:
             raise ValueError(f"config field 'model': unknown model {self.model!r}, expected "
                              f"one of {sorted(ENCODERS)}")
         for name, allowed in (("il", IL_MODES), ("il_step", IL_STEPS),
-                              ("il_norm", IL_NORMS)):
+                              ("il_norm", IL_NORMS), ("dtype", DTYPES)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"config field {name!r}: {getattr(self, name)!r}, expected "
                                  f"one of {list(allowed)}")
@@ -202,6 +213,7 @@ class TrainConfig:
 # The range of every numeric TrainConfig field (dropout: [0, 1), checked apart).
 FIELD_RANGES: dict[str, Range] = {
     "scene_seed": SEED, "seed": SEED,
+    "devices": Range(lo=0, note="0: all local devices"),
     **{f: COUNT for f in ("glob_channels", "action_embed", "fuse_channels", "hidden",
                           "lstm_layers", "num_envs", "rollout_len", "total_env_steps",
                           "updates_per_chunk", "eval_every_chunks",
@@ -277,6 +289,8 @@ def read_config(run_dir: str | Path, cls, stage: str = "nav"):
     version = doc.pop("version", None)
     if version == 2 and cls is TrainConfig:
         doc = {**V2_DEFAULTS, **doc}
+    if version in (2, 3) and cls is TrainConfig:
+        doc = {**V3_DEFAULTS, **doc}
     if version not in READABLE_VERSIONS:
         raise ValueError(f"{path}: config version {version}, this orgnav_jax reads versions "
                          f"{list(READABLE_VERSIONS)}")
