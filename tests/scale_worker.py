@@ -94,7 +94,31 @@ def task_runs(out, scenes_dir):
         json.dump(res, f)
 
 
-TASKS = {"chunk": task_chunk, "runs": task_runs}
+def task_seeds(out, scenes_dir):
+    """Seeds 0 and 1 in one program on 2 devices, whole and killed-then-resumed; the
+    same seeds as separate 1-device runs."""
+    from orgnav_jax.training import loop
+    res = {}
+    kw = dict(il="deadlock", dropout=0.25)
+    pop = loop.train_seeds(small_cfg(scenes_dir, f"{out}/pop", devices=2, **kw), [0, 1],
+                           progress=False)
+    cfg = small_cfg(scenes_dir, f"{out}/killed", devices=2, **kw)
+    first = loop.train_seeds(cfg, [0, 1], progress=False, stop_after_chunks=2)
+    res["killed_chunks"] = [r["chunks"] for r in first]
+    resumed = loop.train_seeds(cfg, [0, 1], resume=True, progress=False)
+    res["resumed_chunks"] = [r["chunks"] for r in resumed]
+    for seed, p, r in zip((0, 1), pop, resumed):
+        save_leaves(f"{out}/pop-s{seed}.npz", p["runner"])
+        save_leaves(f"{out}/resumed-s{seed}.npz", r["runner"])
+        one = loop.train(small_cfg(scenes_dir, f"{out}/one-s{seed}", devices=1, seed=seed,
+                                   **kw), progress=False)
+        save_leaves(f"{out}/one-s{seed}.npz", one["runner"])
+    res["fresh_devices"] = len(pop[0]["runner"].fresh.sharding.device_set)
+    with open(f"{out}/result.json", "w") as f:
+        json.dump(res, f)
+
+
+TASKS = {"chunk": task_chunk, "runs": task_runs, "seeds": task_seeds}
 
 if __name__ == "__main__":
     task, out, scenes_dir, *rest = sys.argv[1:]

@@ -259,6 +259,40 @@ PRESETS.update({name: dict(row, dropout=TABLE_DROPOUT, run_dir=f"runs/{name}-sma
                 for name, row in TABLE_ROWS.items()})
 
 
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """A named training budget (--budget): stage-1 env steps and stage-2 episodes.
+
+    Stage 1 counts env steps (whole updates of num_envs x rollout_len steps with
+    auto-reset), not episodes: an episode budget E becomes E x steps_per_episode env
+    steps, with steps_per_episode the mean training episode length (the cap is 30)."""
+    episodes: int              # stage-1 episodes the budget stands for
+    steps_per_episode: int     # mean env steps per training episode assumed
+    tpn_episodes: int          # stage-2 (TPN) training episodes
+    source: str                # where steps_per_episode comes from
+
+    @property
+    def env_steps(self) -> int:
+        return self.episodes * self.steps_per_episode
+
+    def describe(self) -> str:
+        return (f"budget: {self.episodes:,} episodes x {self.steps_per_episode} env steps "
+                f"per episode ({self.source}) = {self.env_steps:,} env steps for stage 1; "
+                f"{self.tpn_episodes:,} episodes for the TPN")
+
+
+BUDGETS: dict[str, Budget] = {
+    # The paper: 6 M training episodes (12 A3C workers), then 2 M episodes for the TPN.
+    # Episode length: env steps per finished episode over whole 5 M-step runs of the small
+    # benchmark's table (experiments/results/table_5m, 14 runs of baseline / IL / ORG /
+    # ORG+IL / IL-all / IL-failed, 3 seeds): 15.3-16.7, mean 16.2 (early episodes are
+    # short: the untrained policy says Done at random; the 30-step cap bounds it).
+    "paper": Budget(episodes=6_000_000, steps_per_episode=16, tpn_episodes=2_000_000,
+                    source="the mean training episode length of 5 M-step runs on the "
+                           "small benchmark, 15.3-16.7; the 30-step cap would give 180 M"),
+}
+
+
 def get_config(preset: str = "small", **overrides) -> TrainConfig:
     """A preset with fields replaced; clear errors for unknown presets or fields."""
     if preset not in PRESETS:
