@@ -217,3 +217,42 @@ def test_seeds_errors(tmp_path, tiny_dir, cli_error):
     assert cli_error(train_cli.main, base + ["--seeds", 0, 1, "--seed", 3]) == \
         "error: --seed and --seeds: give one"
     assert not (tmp_path / "r-s0").exists()
+
+
+def test_run_table_trains_the_seeds_of_a_row_in_one_program(tmp_path, tiny_dir, monkeypatch):
+    """experiments/run_table.py --population: the row's seeds train through
+    api.train_seeds (one program), then each is tested and tabled as before."""
+    import importlib.util
+
+    from orgnav_jax import api
+    path = Path(__file__).parents[1] / "experiments" / "run_table.py"
+    spec = importlib.util.spec_from_file_location("run_table", path)
+    run_table = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(run_table)
+    calls = []
+    real = api.train_seeds
+    monkeypatch.setattr(api, "train_seeds",
+                        lambda cfg, seeds, **kw: calls.append(list(seeds)) or
+                        real(cfg, seeds, **kw))
+    # run_one then resumes each finished run (a no-op) before testing it
+    real_train = api.train
+    monkeypatch.setattr(api, "train", lambda cfg, resume=False, **kw: real_train(
+        cfg, resume=resume, **kw) if resume else pytest.fail("trained one by one"))
+    out = tmp_path / "table"
+    run_table.main(["--rows", "baseline", "--seeds", "0", "1", "--population", "--out",
+                    str(out), "--scenes-dir", tiny_dir, "--num-envs", "16",
+                    "--rollout-len", "8", "--updates-per-chunk", "2", "--total-env-steps",
+                    "512", "--eval-every-chunks", "2", "--eval-episodes-per-room-type", "4"])
+    assert calls == [[0, 1]]
+    results = json.loads((out / "results.json").read_text())
+    assert sorted(results["baseline"]) == ["0", "1"]
+    for seed in (0, 1):
+        assert (out / "runs" / f"baseline-s{seed}" / "test_results.json").exists()
+        assert loop_config(out / "runs" / f"baseline-s{seed}").seed == seed
+        assert [r["env_steps"] for r in records(out / "runs" / f"baseline-s{seed}",
+                                                "train")] == [256, 512]
+
+
+def loop_config(run_dir):
+    from orgnav_jax.training.config import load_config
+    return load_config(run_dir)
