@@ -256,3 +256,80 @@ def test_run_table_trains_the_seeds_of_a_row_in_one_program(tmp_path, tiny_dir, 
 def loop_config(run_dir):
     from orgnav_jax.training.config import load_config
     return load_config(run_dir)
+
+
+# ------------------------------------------------------------------ several processes
+
+def free_port() -> int:
+    import socket
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def two_processes(args, tmp_path, timeout: int = 600) -> list[subprocess.CompletedProcess]:
+    """`python -m orgnav_jax.train ARGS` as processes 0 and 1 of a jax.distributed job on
+    this machine (one CPU device each, gloo collectives) -> both results."""
+    port = free_port()
+    procs = [subprocess.Popen(
+        [sys.executable, "-m", "orgnav_jax.train", *map(str, args), "--coordinator",
+         f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)],
+        env=subprocess_env(devices=1), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, cwd=tmp_path) for i in (0, 1)]
+    results = []
+    try:
+        for p in procs:
+            out, err = p.communicate(timeout=timeout)
+            results.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for r in results:
+        assert r.returncode == 0, r.stderr[-4000:]
+    return results
+
+
+def printed(proc) -> list[str]:
+    """stdout lines of a process other than gloo's connection notice."""
+    return [line for line in proc.stdout.splitlines() if not line.startswith("[Gloo]")]
+
+
+def test_two_processes_train_the_tiny_preset_and_write_one_set_of_logs(
+        tmp_path, tiny_dir, runs_result):
+    """2 processes x 1 CPU device (jax.distributed, gloo) train the tiny preset as one
+    2-device mesh: process 0 alone writes config.json, metrics.jsonl, TensorBoard and
+    prints; orbax checkpoints are written together; a 2-process resume that extends the
+    budget continues them. The records equal a 1-process 2-device run's (float
+    tolerance)."""
+    run = tmp_path / "run"
+    small = ["--preset", "tiny", "--scenes-dir", tiny_dir, "--num-envs", 16, "--rollout-len",
+             8, "--updates-per-chunk", 2, "--eval-every-chunks", 2,
+             "--eval-episodes-per-room-type", 4, "--checkpoint-every-chunks", 1,
+             "--run-dir", run, "--no-test", "--quiet"]
+    first = two_processes(small + ["--total-env-steps", 512], tmp_path)
+    assert "run " in first[0].stdout and '"chunks": 2' in first[0].stdout
+    assert printed(first[1]) == []
+    assert [r["env_steps"] for r in records(run, "train")] == [256, 512]
+    second = two_processes(["--resume", "--run-dir", run, "--total-env-steps", 1024,
+                            "--no-test", "--quiet"], tmp_path)
+    assert '"chunks": 4' in second[0].stdout and printed(second[1]) == []
+    assert sorted(p.name for p in run.iterdir() if not p.name.startswith("tb")) == \
+        ["best", "checkpoints", "config.json", "metrics.jsonl"]
+    out, _ = runs_result          # the same config on 2 devices of one process
+    assert_records_close(records(run, "train"), records(out / "full2", "train"))
+    assert_records_close(records(run, "val"), records(out / "full2", "val"))
+    assert json.loads((run / "config.json").read_text())["total_env_steps"] == 1024
+
+
+def test_process_options_go_together(tmp_path, tiny_dir, cli_error):
+    from orgnav_jax import train as train_cli
+    base = ["--preset", "tiny", "--scenes-dir", tiny_dir, "--run-dir", tmp_path / "r"]
+    assert "--coordinator, --num-processes and --process-id go together" in cli_error(
+        train_cli.main, base + ["--coordinator", "localhost:1234"])
+    assert "expected HOST:PORT" in cli_error(
+        train_cli.main, base + ["--coordinator", "localhost", "--num-processes", 2,
+                                "--process-id", 0])
+    assert "0 <= process id < number of processes" in cli_error(
+        train_cli.main, base + ["--coordinator", "localhost:1", "--num-processes", 2,
+                                "--process-id", 2])
