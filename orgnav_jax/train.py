@@ -180,13 +180,10 @@ def run_tpn_stage(cfg, resume: bool, args) -> dict:
                   args)
 
 
-def main(argv: list[str] | None = None) -> dict:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    stage = argparse.ArgumentParser(add_help=False)
-    stage.add_argument("--stage", choices=("nav", "tpn"), default="nav")
-    if stage.parse_known_args(argv)[0].stage == "tpn":
-        return main_tpn(argv)
-    args = parser().parse_args(argv)
+def nav_config(args, processes: int = 1):
+    """The stage-1 TrainConfig the parsed options ask for (preset, fields, --budget, or
+    the saved config of a run to --resume); UserError for options that do not go
+    together."""
     overrides = overrides_from_args(args)
     pipeline = TPN_PIPELINES.get(args.preset)
     if (args.tpn_lr or args.tpn_episodes) and not pipeline:
@@ -198,18 +195,28 @@ def main(argv: list[str] | None = None) -> dict:
         if "total_env_steps" in overrides:
             raise UserError("--budget and --total-env-steps set the same budget: give one")
         overrides["total_env_steps"] = BUDGETS[args.budget].env_steps
-    if start_processes(args) > 1 and pipeline:
+    if processes > 1 and pipeline:
         raise UserError(f"--preset {args.preset} trains the TPN too, which runs in one "
                         f"process: train --preset {pipeline[0]} on several processes, then "
                         "--stage tpn --base RUN_DIR in one")
     if args.resume and "run_dir" in overrides and not (set(overrides) - RESUME_OPTIONS):
         # resume with the saved config, in the directory given (a copied or moved run);
         # the budget may be extended, the scenes moved and the devices changed
-        cfg = api.resume_config(seeds=args.seeds, **overrides)
-    else:
-        if pipeline:
-            overrides.setdefault("run_dir", f"runs/{args.preset}-small")
-        cfg = get_config(pipeline[0] if pipeline else args.preset, **overrides)
+        return api.resume_config(seeds=args.seeds, **overrides)
+    if pipeline:
+        overrides.setdefault("run_dir", f"runs/{args.preset}-small")
+    return get_config(pipeline[0] if pipeline else args.preset, **overrides)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    stage = argparse.ArgumentParser(add_help=False)
+    stage.add_argument("--stage", choices=("nav", "tpn"), default="nav")
+    if stage.parse_known_args(argv)[0].stage == "tpn":
+        return main_tpn(argv)
+    args = parser().parse_args(argv)
+    pipeline = TPN_PIPELINES.get(args.preset)
+    cfg = nav_config(args, processes=start_processes(args))
     seeds = f", seeds {' '.join(map(str, args.seeds))} in one program" if args.seeds else ""
     announce(cfg, f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {cfg.num_envs} envs "
                   f"x {cfg.rollout_len} steps, {cfg.total_env_steps:,} env steps{seeds}")

@@ -165,6 +165,9 @@ def test_seeds_in_one_program_equal_separate_runs(tmp_path, tiny_dir, capsys):
              "deadlock", "--no-test", "--quiet"]
     out = train_cli.main([str(a) for a in small + ["--run-dir", tmp_path / "pop",
                                                     "--seeds", 0, 1]])
+    err = capsys.readouterr().err
+    assert "steps/s (2 runs together) over chunks 2-3 (compile excluded): the remaining 1 " \
+        "of 4 chunks take about" in err
     assert [r["run_dir"] for r in out["runs"]] == [str(tmp_path / "pop-s0"),
                                                    str(tmp_path / "pop-s1")]
     assert not (tmp_path / "pop").exists()
@@ -333,3 +336,37 @@ def test_process_options_go_together(tmp_path, tiny_dir, cli_error):
     assert "0 <= process id < number of processes" in cli_error(
         train_cli.main, base + ["--coordinator", "localhost:1", "--num-processes", 2,
                                 "--process-id", 2])
+
+
+# ------------------------------------------------------------------ the paper's budget
+
+def test_budget_paper_is_6m_episodes_and_2m_tpn_episodes(cli_error, tmp_path):
+    """Stage 1 counts env steps: 6 M episodes x 16 steps (the measured mean training
+    episode length) = 96 M; the TPN counts episodes: 2 M."""
+    from orgnav_jax import train as train_cli
+    from orgnav_jax.training.config import BUDGETS
+    paper = BUDGETS["paper"]
+    assert (paper.episodes, paper.steps_per_episode, paper.tpn_episodes) == \
+        (6_000_000, 16, 2_000_000)
+    cfg = train_cli.nav_config(train_cli.parser().parse_args(["--budget", "paper"]))
+    assert cfg.total_env_steps == 96_000_000 and cfg.env_steps_run >= 96_000_000
+    assert "6,000,000 episodes x 16 env steps per episode" in paper.describe()
+    assert cli_error(train_cli.main, ["--budget", "paper", "--total-env-steps", "5"]) == \
+        "error: --budget and --total-env-steps set the same budget: give one"
+    assert cli_error(train_cli.main, ["--stage", "tpn", "--budget", "paper",
+                                      "--total-episodes", "5"]) == \
+        "error: --budget and --total-episodes set the same budget: give one"
+
+
+def test_wall_time_estimate_from_the_timed_chunks():
+    from orgnav_jax.training.driver import Stage, wall_time_estimate
+    stage = Stage(name="train org", unit="step", step_name="env_steps",
+                  rate_key="steps_per_s", per_chunk=25_600, total=96_000_000,
+                  chunk=None, summarize=None, validate=None, score_keys=("success",),
+                  best_keys=("success",))
+    text = wall_time_estimate(stage, chunk=3, seconds=[2.0, 2.0], members=1)
+    assert text.startswith("train org: 12,800 steps/s over chunks 2-3 (compile excluded): "
+                           "the remaining 3747 of 3750 chunks take about 2.1 h")
+    assert "(a whole run: 2.1 h;" in text
+    three = wall_time_estimate(stage, chunk=3, seconds=[2.0, 2.0], members=3)
+    assert "38,400 steps/s (3 runs together)" in three
