@@ -163,7 +163,8 @@ def finish(summary: dict, run_dir: str, args) -> dict:
     print(json.dumps(summary, default=str))
     if not args.no_test and jax.process_count() > 1:
         print(f"note: no test evaluation in a multi-process run; evaluate it in one process: "
-              f"python -m orgnav_jax.evaluate --run {run_dir}", file=sys.stderr, flush=True)
+              f"python -m orgnav_jax.evaluate --checkpoint {run_dir} --split test",
+              file=sys.stderr, flush=True)
     elif not args.no_test:
         result = api.test_run(run_dir, progress=not args.quiet)
         evaluate.print_results(result["policy"], result)

@@ -117,6 +117,21 @@ def test_a_one_device_run_resumes_on_two_devices(runs_result):
     assert json.loads((out / "one_then_two" / "config.json").read_text())["devices"] == 2
 
 
+def test_a_two_device_run_loads_in_a_one_device_process(runs_result):
+    """Evaluation and stage 2 load a run's parameters in any process: a checkpoint saved
+    from a 2-device mesh restores onto this process's one device (also from shapes
+    alone, the latest-checkpoint path of load_run_model)."""
+    from orgnav_jax.training.policy import load_run_model
+    out, _ = runs_result
+    _, latest, _ = load_run_model(out / "full2", best=False)
+    saved = leaves(out / "full2.npz")        # RunnerState leaves: params first
+    got = [np.asarray(x) for x in jax.tree_util.tree_leaves(latest)]
+    for a, b in zip(got, saved[:len(got)]):
+        np.testing.assert_array_equal(a, b)
+    _, best, _ = load_run_model(out / "full2", best=True)
+    assert len(jax.tree_util.tree_leaves(best)) == len(got)
+
+
 def _cli(args, tmp_path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "orgnav_jax.train", *map(str, args)],
                           env=subprocess_env(), capture_output=True, text=True,

@@ -161,19 +161,6 @@ def local_copy(tree):
     return jax.tree_util.tree_map(one, tree)
 
 
-def to_host(tree):
-    """A tree of arrays (replicated or sharded over this process's devices, or
-    single-device) -> numpy. Sharded arrays spanning other processes' devices are
-    gathered first (every process must call this then)."""
-    def one(x):
-        if isinstance(x, jax.Array) and not x.is_fully_addressable \
-                and not x.is_fully_replicated:
-            from jax.experimental import multihost_utils
-            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-        return np.asarray(local_copy(x))
-    return jax.tree_util.tree_map(one, tree)
-
-
 # --------------------------------------------------------------------------- run dirs
 class open_shared_run_dir:
     """open_run_dir (training/run_dir.py: checked and locked) on process 0 alone; every
