@@ -3,6 +3,8 @@
     python benchmarks/train_throughput.py                         # every model, small+paper
     python benchmarks/train_throughput.py --models baseline --num-envs 16 64
     python benchmarks/train_throughput.py --presets paper --updates-per-chunk 3
+    python benchmarks/train_throughput.py --models baseline --devices 1 2   # data parallel
+    python benchmarks/train_throughput.py --models baseline --seeds 1 3     # population
 
 For each model in `orgnav_jax.models.ENCODERS`, each training preset (`small`, `paper`
 widths) and each number of envs N, it compiles `make_train_chunk` (updates_per_chunk x
@@ -14,6 +16,13 @@ widths) and each number of envs N, it compiles `make_train_chunk` (updates_per_c
 * flops_per_env_step, gflops_per_s: see "FLOPs" below;
 * matmul_peak_gflops: a jitted float32 (2048x2048)@(2048x2048) matmul, best of several,
   measured before and after the rows (the larger kept: the machine may be shared).
+
+Scale-out (docs/scale_out.md). --devices D shards the env axis over D devices
+(training/scale.py; N must divide by D); --seeds S vmaps the chunk over S seeds (one
+program, S x the env-steps per chunk). Every combination of --devices and --seeds is a
+row. On CPU, devices beyond one are forced host devices: the script sets
+XLA_FLAGS=--xla_force_host_platform_device_count=max(--devices) before importing jax,
+and the forced devices share the machine's cores (no faster than one device there).
 
 Scenes. The benchmark does not build the `paper` scene preset (minutes, > 1 GB): it loads
 the `tiny` preset once (cached after the first ~20 s build) and swaps in the feature
@@ -51,26 +60,49 @@ MFLOP per env-step plus ~484 MFLOP per update at N=16 (79.6 per env-step at T=16
 as XLA's analysis of the fully unrolled (lowered, not optimised) chunk at T = 1, 2, 4.
 
 Prints a table, then one JSON object as the last line:
-{"results": [{"preset", "model", "num_envs", "env_steps_per_s", "compile_s",
-"gflops_per_s", "flops_per_env_step"}, ...], "matmul_peak_gflops": ...}
+{"results": [{"preset", "model", "num_envs", "devices", "seeds", "env_steps_per_s",
+"compile_s", "gflops_per_s", "flops_per_env_step"}, ...], "matmul_peak_gflops": ...}
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 import time
 
-import jax
-import jax.numpy as jnp
-from jax.extend.core import jaxpr_as_fun
 
-from orgnav_jax.models import ENCODERS, build_model
-from orgnav_jax.scenes import load_or_build
-from orgnav_jax.scenes.builder import feature_bases
-from orgnav_jax.scenes.presets import get_preset
-from orgnav_jax.training.config import get_config
-from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
+def _force_host_devices(argv: list[str]) -> None:
+    """XLA_FLAGS for max(--devices) host devices, before jax is imported (CPU only; a
+    GPU backend ignores the flag)."""
+    if "--devices" not in argv:
+        return
+    wanted = []
+    for a in argv[argv.index("--devices") + 1:]:
+        if a.startswith("-"):
+            break
+        wanted.append(int(a) if a.isdigit() else 1)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if wanted and max(wanted) > 1 and "xla_force_host_platform_device_count" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " --xla_force_host_platform_device_count="
+                                   f"{max(wanted)}").strip()
+
+
+_force_host_devices(sys.argv[1:])
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+from jax.extend.core import jaxpr_as_fun  # noqa: E402
+
+from orgnav_jax.models import ENCODERS, build_model  # noqa: E402
+from orgnav_jax.scenes import load_or_build  # noqa: E402
+from orgnav_jax.scenes.builder import feature_bases  # noqa: E402
+from orgnav_jax.scenes.presets import get_preset  # noqa: E402
+from orgnav_jax.training import scale  # noqa: E402
+from orgnav_jax.training.config import get_config  # noqa: E402
+from orgnav_jax.training.update import (  # noqa: E402
+    init_runner, make_optimizer, make_train_chunk)
 
 
 # --------------------------------------------------------------------------- FLOPs
@@ -133,16 +165,25 @@ def bench_scenes(base, preset: str):
 
 # --------------------------------------------------------------------------- timing
 def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
-             rollout_len: int | None, repeats: int) -> dict:
-    over = dict(model=model_name, num_envs=num_envs, updates_per_chunk=updates)
+             rollout_len: int | None, repeats: int, devices: int = 1, seeds: int = 1,
+             dtype: str = "float32") -> dict:
+    over = dict(model=model_name, num_envs=num_envs, updates_per_chunk=updates, dtype=dtype)
     if rollout_len:
         over["rollout_len"] = rollout_len
     cfg = get_config(preset, **over)
     model = build_model(cfg, scenes)
     optimizer = make_optimizer(cfg)
-    runner = init_runner(cfg, model, optimizer, scenes, jax.random.PRNGKey(cfg.seed))
+    runners = [init_runner(cfg, model, optimizer, scenes, jax.random.PRNGKey(cfg.seed + i))
+               for i in range(seeds)]
+    runner = (jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *runners) if seeds > 1
+              else runners[0])
+    mesh = scale.make_mesh(devices)
+    scale.check_batch(num_envs, mesh)
+    if mesh is not None:
+        runner = scale.place(runner, scale.runner_shardings(runner, mesh, seeds > 1))
+        scenes = scale.place(scenes, scale.replicated(scenes, mesh))
     jax.block_until_ready(runner)
-    chunk = make_train_chunk(cfg, model, optimizer)
+    chunk = make_train_chunk(cfg, model, optimizer, mesh=mesh, population=seeds > 1)
 
     t0 = time.perf_counter()
     traced = chunk.trace(runner, scenes)
@@ -156,11 +197,12 @@ def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
         jax.block_until_ready(compiled(runner, scenes))
         best = min(best, time.perf_counter() - t0)
 
-    steps = cfg.updates_per_chunk * cfg.num_envs * cfg.rollout_len
+    steps = cfg.updates_per_chunk * cfg.num_envs * cfg.rollout_len * seeds
     flops = scan_aware_flops(traced.jaxpr, _flops(lowered.cost_analysis()))
     raw = _flops(compiled.cost_analysis())
     sps = steps / best
     return {"preset": preset, "model": model_name, "num_envs": num_envs,
+            "devices": scale.mesh_size(mesh), "seeds": seeds, "dtype": dtype,
             "env_steps_per_s": round(sps, 1), "compile_s": round(compile_s, 2),
             "gflops_per_s": round(flops / steps * sps / 1e9, 2),
             "flops_per_env_step": round(flops / steps),
@@ -198,6 +240,13 @@ def main() -> None:
     ap.add_argument("--rollout-len", type=int, default=None,
                     help="override the preset's rollout_len (default: the preset's)")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per row; best kept")
+    ap.add_argument("--devices", type=int, nargs="+", default=[1],
+                    help="devices the env axis is sharded over (rows for each; on CPU "
+                         "forced host devices)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1],
+                    help="seeds in one program (a vmapped population; rows for each)")
+    ap.add_argument("--dtype", nargs="+", default=["float32"],
+                    choices=["float32", "bfloat16"], help="compute dtypes (rows for each)")
     ap.add_argument("--matmul-repeats", type=int, default=8)
     args = ap.parse_args()
     bad = sorted(set(args.models) - set(ENCODERS))
@@ -208,8 +257,16 @@ def main() -> None:
             get_config(p)
         except ValueError as e:
             ap.error(str(e))
-    if min(args.num_envs) < 1 or args.updates_per_chunk < 1 or args.repeats < 1:
-        ap.error("--num-envs, --updates-per-chunk and --repeats must be >= 1")
+    if min(args.num_envs) < 1 or args.updates_per_chunk < 1 or args.repeats < 1 \
+            or min(args.devices) < 1 or min(args.seeds) < 1:
+        ap.error("--num-envs, --updates-per-chunk, --repeats, --devices and --seeds must "
+                 "be >= 1")
+    for d in args.devices:
+        if any(n % d for n in args.num_envs):
+            ap.error(f"--num-envs {args.num_envs} must divide by every --devices ({d})")
+    if max(args.devices) > len(jax.local_devices()):
+        ap.error(f"--devices {max(args.devices)}: {len(jax.local_devices())} "
+                 f"{jax.default_backend()} devices")
 
     print(f"jax {jax.__version__} backend {jax.default_backend()} devices {jax.devices()}",
           flush=True)
@@ -218,7 +275,8 @@ def main() -> None:
           "(measured again after the rows; the larger is kept)", flush=True)
 
     base = load_or_build("tiny", progress=False).split_view("train")
-    head = (f"{'preset':6} {'model':9} {'N':>4} {'T':>3} {'steps':>6} {'compile s':>9} "
+    head = (f"{'preset':6} {'model':9} {'D':>2} {'S':>2} {'dtype':8} {'N':>4} {'T':>3} "
+            f"{'steps':>6} {'compile s':>9} "
             f"{'run s':>7} {'env-steps/s':>11} {'MFLOP/step':>10} {'xla raw':>8} "
             f"{'GFLOP/s':>8} {'% peak':>6}")
     print(head + "\n" + "-" * len(head), flush=True)
@@ -226,17 +284,22 @@ def main() -> None:
     for preset in args.presets:
         scenes = bench_scenes(base, preset)
         for model_name in args.models:
-            for n in args.num_envs:
+            for n, d, seeds, dtype in [(n, d, s, t) for t in args.dtype
+                                       for d in args.devices for s in args.seeds
+                                       for n in args.num_envs]:
                 r = time_row(preset, model_name, n, scenes, args.updates_per_chunk,
-                             args.rollout_len, args.repeats)
+                             args.rollout_len, args.repeats, d, seeds, dtype)
                 rows.append(r)
-                print(f"{preset:6} {model_name:9} {n:4d} {r['_rollout_len']:3d} "
+                print(f"{preset:6} {model_name:9} {d:2d} {seeds:2d} {dtype:8} {n:4d} "
+                      f"{r['_rollout_len']:3d} "
                       f"{r['_steps']:6d} {r['compile_s']:9.2f} {r['_run_s']:7.3f} "
                       f"{r['env_steps_per_s']:11.1f} {r['flops_per_env_step'] / 1e6:10.2f} "
                       f"{r['_raw_flops_per_env_step'] / 1e6:8.2f} {r['gflops_per_s']:8.2f} "
                       f"{100 * r['gflops_per_s'] / peak:6.1f}", flush=True)
-    print("MFLOP/step: scan-aware count; xla raw: compiled.cost_analysis() / env-steps "
-          "(scan bodies counted once); % peak: of the matmul peak measured first")
+    print("D: devices (env axis sharded); S: seeds in one program; steps: env-steps per "
+          "chunk (all seeds); MFLOP/step: scan-aware count; xla raw: "
+          "compiled.cost_analysis() / env-steps (scan bodies counted once; per device when "
+          "sharded); % peak: of the matmul peak measured first")
     peak = max(peak, matmul_peak_gflops(repeats=args.matmul_repeats))
     print(f"fp32 matmul peak, best of before and after: {peak:.1f} GFLOP/s", flush=True)
     results = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]

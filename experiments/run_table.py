@@ -23,6 +23,11 @@ paper's global-feature match instead of the visited set; "train_mode" runs the n
 with dropout during the TPN evaluation, as the release did). Baseline+TPN is baseline+tpn; the
 full model (ORG+IL+TPN) is org_il+tpn. A suffix @LR sets the test-time learning rate
 (default 1e-4), e.g. org_il+tpn@1e-3.
+
+--population trains the seeds of each navigation row in one program (the seeds as a
+vmapped population axis of one jitted chunk: api.train_seeds) before the table is
+filled; the run directories, resumption and results are the same as without it (seeds
+of a row that were started one by one are finished one by one).
 """
 
 from __future__ import annotations
@@ -77,6 +82,19 @@ def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
     cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir)})
     api.train(cfg, resume=is_run_dir(run_dir), progress=sys.stderr.isatty())
     return api.test_run(run_dir, progress=False)["overall"]
+
+
+def train_row_population(row: str, seeds: list[int], out: Path, overrides: dict) -> None:
+    """Train the seeds of navigation row `row` that lack test results in one program
+    (OUT/runs/<row>-s<seed>); seeds whose runs were started separately are left to
+    run_one (a population resumes only runs at a common checkpoint)."""
+    todo = [s for s in seeds
+            if not (out / "runs" / f"{row}-s{s}" / "test_results.json").exists()]
+    started = [is_run_dir(out / "runs" / f"{row}-s{s}") for s in todo]
+    if len(todo) < 2 or (any(started) and not all(started)):
+        return
+    cfg = get_config(row, **{**overrides, "run_dir": str(out / "runs" / row)})
+    api.train_seeds(cfg, todo, resume=all(started), progress=sys.stderr.isatty())
 
 
 def row_name(text: str) -> str:
@@ -164,6 +182,8 @@ def main(argv: list[str] | None = None) -> None:
                     help="stage-2 training episodes of TPN rows (TPNConfig.total_episodes)")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--out", default="experiments/results/tables")
+    ap.add_argument("--population", action="store_true",
+                    help="train the seeds of each navigation row in one program")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
     overrides = {k: v for k, v in overrides_from_args(args).items()
@@ -176,6 +196,9 @@ def main(argv: list[str] | None = None) -> None:
         saved = out / "results.json"
         results: dict[str, dict[str, dict]] = (json.loads(saved.read_text())
                                                if saved.exists() else {})
+        if args.population:
+            for base in dict.fromkeys(row.partition("+")[0] for row in args.rows):
+                train_row_population(base, args.seeds, out, overrides)
         for seed in args.seeds:                 # seed-major: a partial table covers all rows
             for row in args.rows:
                 metrics = (run_tpn(row, seed, out, overrides, tpn_fields) if "+" in row

@@ -6,6 +6,7 @@
     summary = api.train_tpn(get_tpn_config(base_dir=RUN))      # stage 2
     result = api.evaluate_run(RUN, split="test")               # stage-1 or TPN run
     summary = api.train_both(get_config("org_il"), tpn_lr=1e-3)
+    summaries = api.train_seeds(get_config("baseline"), seeds=(0, 1, 2))   # one program
 
 Every function returns its results and raises on bad input (UserError, ValueError,
 OSError, with messages naming the file or field); none prints results or exits. The
@@ -176,6 +177,14 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
     return train_navigation(cfg, resume=resume, progress=progress)
 
 
+def train_seeds(cfg: TrainConfig, seeds, resume: bool = False,
+                progress: bool = True) -> list[dict]:
+    """Stage 1 for several seeds of cfg in one program (a vmapped population axis), seed
+    S in <cfg.run_dir>-sS -> one summary per seed (training/loop.py: train_seeds)."""
+    from orgnav_jax.training.loop import train_seeds as train_population
+    return train_population(cfg, seeds, resume=resume, progress=progress)
+
+
 def train_tpn(cfg, resume: bool = False, progress: bool = True) -> dict:
     """Stage 2: train (or resume) the TPN of cfg.run_dir on its frozen base -> summary."""
     from orgnav_jax.tpn.stage2 import train_tpn as train_stage2
@@ -205,7 +214,13 @@ def train_both(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     return {"nav": nav, "tpn": tpn}
 
 
-def resume_config(run_dir: str | Path, **changes) -> TrainConfig:
+def resume_config(run_dir: str | Path, seeds=None, **changes) -> TrainConfig:
     """The saved config of a training run, in the directory given (a copied or moved run
-    resumes where it is), with `changes` (budget, scenes_dir) applied."""
-    return dataclasses.replace(load_config(run_dir), run_dir=str(run_dir), **changes)
+    resumes where it is), with `changes` (budget, scenes_dir, devices) applied. With
+    `seeds`, run_dir is a population's base (its runs are <run_dir>-s<seed>): the config
+    of the first seed's run."""
+    saved = run_dir
+    if seeds:
+        from orgnav_jax.training.loop import seed_run_dir
+        saved = seed_run_dir(str(run_dir), seeds[0])
+    return dataclasses.replace(load_config(saved), run_dir=str(run_dir), **changes)

@@ -15,6 +15,15 @@ an option; see --help.
 finished run (stage 2; by default in RUN_DIR/tpn), then evaluates the model with TPN's
 test-time updates on the test split. Its options are the TPNConfig fields: see
 `python -m orgnav_jax.train --stage tpn --help`.
+
+Scale-out (docs/scale_out.md):
+    python -m orgnav_jax.train --devices 2                # env axis over 2 devices
+    python -m orgnav_jax.train --seeds 0 1 2              # 3 seeds in one program:
+                                                          #   RUN_DIR-s0, -s1, -s2
+    python -m orgnav_jax.train --budget paper             # 6 M episodes (96 M env steps)
+    python -m orgnav_jax.train --dtype bfloat16           # bf16 matmuls, fp32 parameters
+    python -m orgnav_jax.train --coordinator HOST:PORT --num-processes 2 --process-id 0
+    srun python -m orgnav_jax.train --distributed         # processes from the launcher
 """
 
 from __future__ import annotations
@@ -28,7 +37,7 @@ from pathlib import Path
 from orgnav_jax import api, evaluate
 from orgnav_jax.errors import UserError, run_cli
 from orgnav_jax.training.config import (
-    TRAIN_PRESETS, add_config_arguments, get_config, load_config, overrides_from_args)
+    BUDGETS, TRAIN_PRESETS, add_config_arguments, get_config, load_config, overrides_from_args)
 from orgnav_jax.training.run_dir import is_run_dir
 
 
@@ -42,11 +51,24 @@ def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
                     help="continue the run in --run-dir from its latest checkpoint")
     ap.add_argument("--no-test", action="store_true", help="skip the final test evaluation")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    ap.add_argument("--budget", choices=sorted(BUDGETS), default=None,
+                    help="a named training budget: paper = the paper's 6 M episodes for "
+                         "stage 1 (96 M env steps: 16 env steps per episode, measured) and "
+                         "2 M episodes for the TPN (docs/scale_out.md)")
+    procs = ap.add_argument_group(
+        "several processes (jax.distributed; process 0 writes the logs; docs/scale_out.md)")
+    procs.add_argument("--coordinator", metavar="HOST:PORT", default=None,
+                       help="address of process 0's coordinator service")
+    procs.add_argument("--num-processes", type=int, default=None, metavar="P")
+    procs.add_argument("--process-id", type=int, default=None, metavar="I")
+    procs.add_argument("--distributed", action="store_true",
+                       help="jax.distributed.initialize() with the launcher's settings "
+                            "(Slurm, Open MPI, or JAX_COORDINATOR_ADDRESS etc.)")
     return ap
 
 
 # options that may go with --resume --run-dir alone (the rest come from config.json)
-RESUME_OPTIONS = {"run_dir", "total_env_steps", "scenes_dir"}
+RESUME_OPTIONS = {"run_dir", "total_env_steps", "scenes_dir", "devices"}
 RESUME_TPN_OPTIONS = {"run_dir", "total_episodes", "base_dir"}
 
 # presets that run both stages: the navigation preset, then its TPN, evaluated with the
@@ -63,6 +85,9 @@ def parser() -> argparse.ArgumentParser:
                     help="baseline_tpn / full: test-time learning rate (default 1e-3)")
     ap.add_argument("--tpn-episodes", type=int, default=None,
                     help="baseline_tpn / full: stage-2 training episodes (default 40000)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=None, metavar="SEED",
+                    help="train these seeds of the config in one program (a vmapped "
+                         "population axis), seed S in RUN_DIR-sS (instead of --seed)")
     add_config_arguments(ap)
     return ap
 
@@ -78,7 +103,15 @@ def main_tpn(argv: list[str]) -> dict:
     """Stage 2: train the TPN on a finished run, then evaluate with test-time updates."""
     from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config, tpn_overrides_from_args
     args = tpn_parser().parse_args(argv)
+    if start_processes(args) > 1:
+        raise UserError("--stage tpn runs in one process: start it without --coordinator / "
+                        "--distributed (stage 2 is small; its base may come from a "
+                        "multi-process run)")
     fields = tpn_overrides_from_args(args)
+    if args.budget:
+        if "total_episodes" in fields:
+            raise UserError("--budget and --total-episodes set the same budget: give one")
+        fields["total_episodes"] = BUDGETS[args.budget].tpn_episodes
     if args.resume and "run_dir" in fields and not (set(fields) - RESUME_TPN_OPTIONS):
         # resume with the saved config, in the directory given (a copied or moved run)
         cfg = dataclasses.replace(load_tpn_config(fields["run_dir"]), **fields)
@@ -93,18 +126,46 @@ def main_tpn(argv: list[str]) -> dict:
     return run_tpn_stage(cfg, args.resume, args)
 
 
+def start_processes(args) -> int:
+    """jax.distributed.initialize when asked (before anything touches a device) -> the
+    number of processes."""
+    from orgnav_jax.training.scale import init_distributed
+    init_distributed(args.coordinator, args.num_processes, args.process_id,
+                     auto=args.distributed)
+    if args.coordinator or args.distributed:
+        import jax
+        return jax.process_count()
+    return 1
+
+
+def primary() -> bool:
+    """Whether this process prints and writes results (process 0; see training/scale.py)."""
+    from orgnav_jax.training.scale import is_primary
+    return is_primary()
+
+
 def announce(cfg, header: str) -> None:
     """The budget notice (if the budget rounds) and the run's one-line header."""
+    if not primary():
+        return
     if cfg.budget_notice():
         print(cfg.budget_notice(), file=sys.stderr, flush=True)
     print(header, flush=True)
 
 
 def finish(summary: dict, run_dir: str, args) -> dict:
-    """Print the summary; unless --no-test, evaluate the run on the test split."""
+    """Print the summary; unless --no-test, evaluate the run on the test split (in one
+    process: a multi-process run skips it, see docs/scale_out.md)."""
+    import jax
     summary.pop("runner")
+    if not primary():
+        return summary
     print(json.dumps(summary, default=str))
-    if not args.no_test:
+    if not args.no_test and jax.process_count() > 1:
+        print(f"note: no test evaluation in a multi-process run; evaluate it in one process: "
+              f"python -m orgnav_jax.evaluate --checkpoint {run_dir} --split test",
+              file=sys.stderr, flush=True)
+    elif not args.no_test:
         result = api.test_run(run_dir, progress=not args.quiet)
         evaluate.print_results(result["policy"], result)
         print(f"\nresults: {result['out']}")
@@ -120,6 +181,34 @@ def run_tpn_stage(cfg, resume: bool, args) -> dict:
                   args)
 
 
+def nav_config(args, processes: int = 1):
+    """The stage-1 TrainConfig the parsed options ask for (preset, fields, --budget, or
+    the saved config of a run to --resume); UserError for options that do not go
+    together."""
+    overrides = overrides_from_args(args)
+    pipeline = TPN_PIPELINES.get(args.preset)
+    if (args.tpn_lr or args.tpn_episodes) and not pipeline:
+        raise UserError(f"--tpn-lr and --tpn-episodes go with the presets "
+                        f"{sorted(TPN_PIPELINES)}")
+    if args.seeds is not None and "seed" in overrides:
+        raise UserError("--seed and --seeds: give one")
+    if args.budget:
+        if "total_env_steps" in overrides:
+            raise UserError("--budget and --total-env-steps set the same budget: give one")
+        overrides["total_env_steps"] = BUDGETS[args.budget].env_steps
+    if processes > 1 and pipeline:
+        raise UserError(f"--preset {args.preset} trains the TPN too, which runs in one "
+                        f"process: train --preset {pipeline[0]} on several processes, then "
+                        "--stage tpn --base RUN_DIR in one")
+    if args.resume and "run_dir" in overrides and not (set(overrides) - RESUME_OPTIONS):
+        # resume with the saved config, in the directory given (a copied or moved run);
+        # the budget may be extended, the scenes moved and the devices changed
+        return api.resume_config(seeds=args.seeds, **overrides)
+    if pipeline:
+        overrides.setdefault("run_dir", f"runs/{args.preset}-small")
+    return get_config(pipeline[0] if pipeline else args.preset, **overrides)
+
+
 def main(argv: list[str] | None = None) -> dict:
     argv = sys.argv[1:] if argv is None else list(argv)
     stage = argparse.ArgumentParser(add_help=False)
@@ -127,31 +216,30 @@ def main(argv: list[str] | None = None) -> dict:
     if stage.parse_known_args(argv)[0].stage == "tpn":
         return main_tpn(argv)
     args = parser().parse_args(argv)
-    overrides = overrides_from_args(args)
     pipeline = TPN_PIPELINES.get(args.preset)
-    if (args.tpn_lr or args.tpn_episodes) and not pipeline:
-        raise UserError(f"--tpn-lr and --tpn-episodes go with the presets "
-                        f"{sorted(TPN_PIPELINES)}")
-    if args.resume and "run_dir" in overrides and not (set(overrides) - RESUME_OPTIONS):
-        # resume with the saved config, in the directory given (a copied or moved run);
-        # the budget may be extended and the scenes moved
-        cfg = api.resume_config(**overrides)
-    else:
-        if pipeline:
-            overrides.setdefault("run_dir", f"runs/{args.preset}-small")
-        cfg = get_config(pipeline[0] if pipeline else args.preset, **overrides)
+    cfg = nav_config(args, processes=start_processes(args))
+    seeds = f", seeds {' '.join(map(str, args.seeds))} in one program" if args.seeds else ""
     announce(cfg, f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {cfg.num_envs} envs "
-                  f"x {cfg.rollout_len} steps, {cfg.total_env_steps:,} env steps")
-    summary = finish(api.train(cfg, resume=args.resume, progress=not args.quiet),
-                     cfg.run_dir, args)
+                  f"x {cfg.rollout_len} steps, {cfg.total_env_steps:,} env steps{seeds}")
+    if args.budget and primary():
+        print(BUDGETS[args.budget].describe(), file=sys.stderr, flush=True)
+    if args.seeds is not None:
+        runs = api.train_seeds(cfg, args.seeds, resume=args.resume, progress=not args.quiet)
+        summaries = [finish(s, s["run_dir"], args) for s in runs]
+    else:
+        summaries = [finish(api.train(cfg, resume=args.resume, progress=not args.quiet),
+                            cfg.run_dir, args)]
     if pipeline:
         from orgnav_jax.tpn.config import get_tpn_config
         fields = {"tpn_lr": args.tpn_lr or pipeline[1]}
-        fields.update({"total_episodes": args.tpn_episodes} if args.tpn_episodes else {})
-        tpn_cfg = get_tpn_config(base_dir=cfg.run_dir, **fields)
-        summary["tpn"] = run_tpn_stage(
-            tpn_cfg, args.resume and is_run_dir(tpn_cfg.run_dir), args)
-    return summary
+        episodes = args.tpn_episodes or (BUDGETS[args.budget].tpn_episodes if args.budget
+                                         else None)
+        fields.update({"total_episodes": episodes} if episodes else {})
+        for summary in summaries:
+            tpn_cfg = get_tpn_config(base_dir=summary["run_dir"], **fields)
+            summary["tpn"] = run_tpn_stage(
+                tpn_cfg, args.resume and is_run_dir(tpn_cfg.run_dir), args)
+    return summaries[0] if args.seeds is None else {"runs": summaries}
 
 
 if __name__ == "__main__":

@@ -255,8 +255,8 @@ def test_a_non_finite_loss_is_a_one_line_error_that_keeps_the_checkpoints(
         tmp_path, tiny_dir, monkeypatch, cli_error):
     real = loop.make_train_chunk
 
-    def poisoned(cfg, model, optimizer):
-        chunk_fn, calls = real(cfg, model, optimizer), [0]
+    def poisoned(cfg, model, optimizer, **kw):
+        chunk_fn, calls = real(cfg, model, optimizer, **kw), [0]
 
         def wrapped(runner, scenes):
             calls[0] += 1

@@ -105,8 +105,8 @@ def test_nan_loss_stops_with_a_clear_message_and_keeps_the_last_checkpoint(
         tmp_path, tiny_dir, monkeypatch):
     real = loop.make_train_chunk
 
-    def poisoned(cfg, model, optimizer):
-        chunk_fn, calls = real(cfg, model, optimizer), [0]
+    def poisoned(cfg, model, optimizer, **kw):
+        chunk_fn, calls = real(cfg, model, optimizer, **kw), [0]
 
         def wrapped(runner, scenes):
             calls[0] += 1

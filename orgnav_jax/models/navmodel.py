@@ -62,13 +62,19 @@ class NavModel(nn.Module):
         return (batch, FEATURE_GRID, FEATURE_GRID, self.trunk.glob_channels)
 
 
+def compute_dtype(cfg):
+    """The modules' compute dtype for a config's `dtype` field: None (float32 as it is)
+    or jnp.bfloat16 (mixed precision, float32 parameters: models/trunk.py)."""
+    return {"float32": None, "bfloat16": jnp.bfloat16}[getattr(cfg, "dtype", "float32")]
+
+
 # name -> factory(model config, training SceneSet) -> encoder module
 ENCODERS: dict[str, Callable] = {
-    "baseline": lambda cfg, scenes: BaselineEncoder(),
-    "we": lambda cfg, scenes: WordEmbeddingEncoder(),
-    "org": lambda cfg, scenes: ORGEncoder(),
-    "org_released": lambda cfg, scenes: ReleasedORGEncoder(),
-    "dsp": lambda cfg, scenes: dsp_from_scenes(scenes),
+    "baseline": lambda cfg, scenes: BaselineEncoder(dtype=compute_dtype(cfg)),
+    "we": lambda cfg, scenes: WordEmbeddingEncoder(dtype=compute_dtype(cfg)),
+    "org": lambda cfg, scenes: ORGEncoder(dtype=compute_dtype(cfg)),
+    "org_released": lambda cfg, scenes: ReleasedORGEncoder(dtype=compute_dtype(cfg)),
+    "dsp": lambda cfg, scenes: dsp_from_scenes(scenes, compute_dtype(cfg)),
 }
 
 
@@ -79,7 +85,7 @@ def build_model(cfg, scenes) -> NavModel:
         raise ValueError(f"unknown model {cfg.model!r}: expected one of {sorted(ENCODERS)}")
     trunk = Trunk(glob_channels=cfg.glob_channels, action_embed=cfg.action_embed,
                   fuse_channels=cfg.fuse_channels, hidden=cfg.hidden,
-                  lstm_layers=cfg.lstm_layers)
+                  lstm_layers=cfg.lstm_layers, dtype=compute_dtype(cfg))
     return NavModel(ENCODERS[cfg.model](cfg, scenes), trunk)
 
 

@@ -21,6 +21,7 @@ statistics of the training rooms (cooccurrence_adjacency):
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -28,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from orgnav_jax.models.encoders import MAP_CELLS, location_features
+from orgnav_jax.models.trunk import cast
 
 
 def adjacency_init(noise: float = 0.0):
@@ -47,17 +49,18 @@ class ORGEncoder(nn.Module):
     Dense 49 over [F^, X] per category. Parameters: `adjacency` (C, C), `embed_W` (6, C),
     `to_map`."""
     adjacency_noise: float = 0.0
+    dtype: Any = None
 
     @nn.compact
     def __call__(self, app, box, conf, target, train: bool = False):
-        C = app.shape[-2]
+        C, dt = app.shape[-2], self.dtype
         x = location_features(box, conf, target)                     # (B, C, 6)
         A = self.param("adjacency", adjacency_init(self.adjacency_noise), (C, C))
-        xw = nn.Dense(C, use_bias=False, name="embed_W")(x)          # X W: (B, C, C)
-        z = nn.relu(jnp.einsum("ij,bjk->bik", A, xw))                # Z:   (B, C, C)
-        f_hat = nn.relu(jnp.einsum("bik,bkd->bid", z, app))          # F^:  (B, C, d)
-        h = jnp.concatenate([f_hat, x], axis=-1)
-        return nn.Dense(MAP_CELLS, name="to_map")(h)
+        xw = nn.Dense(C, use_bias=False, name="embed_W", dtype=dt)(x)   # X W: (B, C, C)
+        z = nn.relu(jnp.einsum("ij,bjk->bik", cast(A, dt), xw))      # Z:   (B, C, C)
+        f_hat = nn.relu(jnp.einsum("bik,bkd->bid", z, cast(app, dt)))   # F^: (B, C, d)
+        h = jnp.concatenate([f_hat, cast(x, dt)], axis=-1)
+        return nn.Dense(MAP_CELLS, name="to_map", dtype=dt)(h)
 
 
 class ReleasedORGEncoder(nn.Module):
@@ -69,23 +72,24 @@ class ReleasedORGEncoder(nn.Module):
     R mixes information across categories; False applies all of them over the last axis."""
     hidden: int = 128
     alternate: bool = True
+    dtype: Any = None
 
     @nn.compact
     def __call__(self, app, box, conf, target, train: bool = False):
-        C = app.shape[-2]
+        C, dt = app.shape[-2], self.dtype
         x = location_features(box, conf, target)                     # (B, C, 6)
-        r = nn.relu(nn.Dense(C, name="relation_1")(x))               # (B, C, C)
+        r = nn.relu(nn.Dense(C, name="relation_1", dtype=dt)(x))     # (B, C, C)
         for i in range(2, 6):
             transpose = self.alternate and i % 2 == 0
             if transpose:
                 r = jnp.swapaxes(r, -1, -2)
-            r = nn.relu(nn.Dense(C, name=f"relation_{i}")(r))
+            r = nn.relu(nn.Dense(C, name=f"relation_{i}", dtype=dt)(r))
             if transpose:
                 r = jnp.swapaxes(r, -1, -2)
-        f_hat = jnp.einsum("bij,bid->bjd", r, app)                   # R^T F: (B, C, d)
-        h = jnp.concatenate([f_hat, x], axis=-1)
-        h = nn.relu(nn.Dense(self.hidden, name="hidden")(h))
-        return nn.Dense(MAP_CELLS, name="to_map")(h)
+        f_hat = jnp.einsum("bij,bid->bjd", r, cast(app, dt))         # R^T F: (B, C, d)
+        h = jnp.concatenate([f_hat, cast(x, dt)], axis=-1)
+        h = nn.relu(nn.Dense(self.hidden, name="hidden", dtype=dt)(h))
+        return nn.Dense(MAP_CELLS, name="to_map", dtype=dt)(h)
 
 
 def cooccurrence_adjacency(present: np.ndarray) -> np.ndarray:
@@ -118,6 +122,7 @@ class DSPEncoder(nn.Module):
     (C x C, hashable tuple of tuples) on nodes [F, X] (B, C, d + 6), then Dense 49."""
     adjacency: tuple[tuple[float, ...], ...]
     features: Sequence[int] = (64, 64)
+    dtype: Any = None
 
     @nn.compact
     def __call__(self, app, box, conf, target, train: bool = False):
@@ -127,11 +132,12 @@ class DSPEncoder(nn.Module):
             raise ValueError(f"D-SP adjacency is {A.shape}, inputs have {C} categories")
         h = jnp.concatenate([app, location_features(box, conf, target)], axis=-1)
         for i, width in enumerate(self.features):
-            h = nn.Dense(width, name=f"gcn_{i}")(h)                  # H W
-            h = nn.relu(jnp.einsum("ij,bjk->bik", A, h))             # A_hat H W
-        return nn.Dense(MAP_CELLS, name="to_map")(h)
+            h = nn.Dense(width, name=f"gcn_{i}", dtype=self.dtype)(h)   # H W
+            h = nn.relu(jnp.einsum("ij,bjk->bik", cast(A, self.dtype), h))   # A_hat H W
+        return nn.Dense(MAP_CELLS, name="to_map", dtype=self.dtype)(h)
 
 
-def dsp_from_scenes(scenes) -> DSPEncoder:
+def dsp_from_scenes(scenes, dtype=None) -> DSPEncoder:
     """A DSPEncoder whose prior graph comes from `scenes.present` (the training rooms)."""
-    return DSPEncoder(as_static_matrix(cooccurrence_adjacency(np.asarray(scenes.present))))
+    return DSPEncoder(as_static_matrix(cooccurrence_adjacency(np.asarray(scenes.present))),
+                      dtype=dtype)

@@ -14,6 +14,13 @@ does not depend on earlier steps; `recur` runs the recurrence and the heads. In 
 scanned. The LSTM cell is flax's (gates i, f, g, o; input kernels lecun-normal, recurrent
 kernels orthogonal per gate, zero bias), with its input projection done in `embed`.
 
+Mixed precision (`dtype=jnp.bfloat16`, TrainConfig.dtype): the layers up to the LSTM
+compute in bf16 (flax's `dtype`; parameters stay float32, flax's `param_dtype`); the LSTM
+matmuls take bf16 operands and accumulate in float32 (`preferred_element_type`), the
+gates, the cell state and the carry stay float32, and the actor and critic heads run in
+float32 (their softmax and value regression want the precision; they are tiny). With
+dtype None (float32) the program is the plain float32 one.
+
 Dropout (the release's 0.25 after the global map's 1x1 layer) is an explicit mask input,
 not flax's rng-driven nn.Dropout: the rollout draws the mask of each step from a key it
 stores in the trajectory, and the loss's replay rebuilds the very same masks
@@ -26,7 +33,22 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from typing import Any
+
 from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS
+
+
+def cast(x, dtype):
+    """x in the compute dtype (unchanged when dtype is None: float32 as it is)."""
+    return x if dtype is None else x.astype(dtype)
+
+
+def matmul(x, kernel, dtype):
+    """x @ kernel; in `dtype` operands with float32 accumulation and result if given."""
+    if dtype is None:
+        return x @ kernel
+    return jnp.dot(x.astype(dtype), kernel.astype(dtype),
+                   preferred_element_type=jnp.float32)
 
 
 def _per_gate(init):
@@ -43,6 +65,7 @@ class LSTMGates(nn.Module):
     gates; `recur(gates, (c, h))` -> ((c, h), h), each (B, H)."""
     features: int
     in_features: int
+    dtype: Any = None          # compute dtype of the matmuls (None: float32)
 
     def setup(self):
         H = self.features
@@ -53,11 +76,12 @@ class LSTMGates(nn.Module):
         self.bias = self.param("bias", nn.initializers.zeros, (4 * H,))
 
     def project(self, x):
-        return x @ self.input_kernel + self.bias
+        return matmul(x, self.input_kernel, self.dtype) + self.bias
 
     def recur(self, gates, carry):
         c, h = carry
-        gi, gf, gg, go = jnp.split(gates + h @ self.recurrent_kernel, 4, axis=-1)
+        gi, gf, gg, go = jnp.split(gates + matmul(h, self.recurrent_kernel, self.dtype), 4,
+                                   axis=-1)
         c = nn.sigmoid(gf) * c + nn.sigmoid(gi) * jnp.tanh(gg)
         h = nn.sigmoid(go) * jnp.tanh(c)
         return (c, h), h
@@ -69,13 +93,14 @@ class Trunk(nn.Module):
     fuse_channels: int = 64
     hidden: int = 512
     lstm_layers: int = 1
+    dtype: Any = None          # compute dtype below the heads (None: float32)
 
     def setup(self):
-        self.global_1x1 = nn.Dense(self.glob_channels)
-        self.action_dense = nn.Dense(self.action_embed)
-        self.fuse_1x1 = nn.Dense(self.fuse_channels)
+        self.global_1x1 = nn.Dense(self.glob_channels, dtype=self.dtype)
+        self.action_dense = nn.Dense(self.action_embed, dtype=self.dtype)
+        self.fuse_1x1 = nn.Dense(self.fuse_channels, dtype=self.dtype)
         flat = FEATURE_GRID * FEATURE_GRID * self.fuse_channels
-        self.lstm = [LSTMGates(self.hidden, flat if i == 0 else self.hidden)
+        self.lstm = [LSTMGates(self.hidden, flat if i == 0 else self.hidden, self.dtype)
                      for i in range(self.lstm_layers)]
         self.actor = nn.Dense(NUM_ACTIONS)
         self.critic_hidden = nn.Dense(64)
@@ -87,10 +112,11 @@ class Trunk(nn.Module):
         B = glob.shape[0]
         g = nn.relu(self.global_1x1(glob))
         if drop is not None:
-            g = g * drop
+            g = g * cast(drop, self.dtype)
         a = self.action_dense(prev_action)
         a = jnp.broadcast_to(a[:, None, None, :], (B, FEATURE_GRID, FEATURE_GRID, a.shape[-1]))
-        c = jnp.moveaxis(cat_maps, 1, -1).reshape(B, FEATURE_GRID, FEATURE_GRID, -1)
+        c = jnp.moveaxis(cast(cat_maps, self.dtype), 1, -1).reshape(
+            B, FEATURE_GRID, FEATURE_GRID, -1)
         x = jnp.concatenate([g, c, a], axis=-1)
         x = nn.relu(self.fuse_1x1(x)).reshape(B, -1)
         return self.lstm[0].project(x)

@@ -33,7 +33,7 @@ SCOPES, DETECTORS, WHEN, TARGETS, ACTS = (get_args(t) for t in (Scope, Detector,
 # test-time policy's compile-cache key); stage 2's fields stay on TPNConfig.
 @dataclasses.dataclass(frozen=True)
 class TPNNetwork:
-    """Widths of the TPN network (models.tpn.TPN)."""
+    """Widths of the TPN network (models.tpn_net.TPN)."""
     action_embed: int = 32
     mlp: int = 256
     top_k: int = 10
@@ -64,7 +64,7 @@ class TestTime:
 @dataclasses.dataclass(frozen=True)
 class TPNConfig:
     base_dir: str = ""                # the trained navigation run (its best-on-val params)
-    # the network (models.tpn.TPN)
+    # the network (models.tpn_net.TPN)
     action_embed: int = 32
     mlp: int = 256
     top_k: int = 10

@@ -118,9 +118,21 @@ class CheckpointUnreadable(ValueError):
     """A checkpoint that does not fit the model or cannot be read."""
 
 
+def _abstract(x):
+    """A leaf of `like` as the ShapeDtypeStruct to restore into: its own sharding, or
+    (shapes only, e.g. from jax.eval_shape) this process's first device. Checkpoints
+    hold global arrays, so one saved on a mesh of other devices restores here; a run on
+    a mesh puts the restored runner on it afterwards (training/scale.py)."""
+    x = ocp.utils.to_shape_dtype_struct(x)
+    if getattr(x, "sharding", None) is None:
+        x = jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=jax.sharding.SingleDeviceSharding(
+            jax.local_devices()[0]))
+    return x
+
+
 def _restore_one(manager, step: int, like):
     where = f"checkpoint {manager.directory}/{step}"
-    abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, like)
+    abstract = jax.tree_util.tree_map(_abstract, like)
     try:
         problem = _mismatch(manager.item_metadata(step)["state"], abstract)
     except Exception as err:                        # orbax raises many kinds

@@ -15,10 +15,14 @@ import numbers
 from pathlib import Path
 from typing import Literal, get_args
 
-CONFIG_VERSION = 3   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step
-READABLE_VERSIONS = (2, 3)   # configs and checkpoints this version reads (same parameters)
+CONFIG_VERSION = 4   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step;
+                     # 4: devices, dtype (scale-out; same parameters and checkpoints)
+READABLE_VERSIONS = (2, 3, 4)   # configs and checkpoints this version reads
 # Fields a version-2 config lacks, with the values those runs were trained with.
 V2_DEFAULTS = {"il_norm": "masked_mean", "il_step": "state"}
+# Fields a version-3 (or 2) config lacks, with the values those runs were trained with
+# (one device, float32): equal to the dataclass defaults, kept here as the record.
+V3_DEFAULTS = {"devices": 0, "dtype": "float32"}
 
 # String modes are Literal types; their values (typing.get_args) are what validate
 # accepts, and every dispatch on them is a dict that raises on other values
@@ -28,7 +32,10 @@ ILStep = Literal["cause", "state"]   # supervise the action that led into a dead
                                      # the action taken at the deadlock state
 ILNorm = Literal["per_step", "masked_mean"]   # sum / (T*N) (as the release), or mean over
                                               # the IL steps
+DType = Literal["float32", "bfloat16"]   # the compute dtype of matmuls and activations
+                                       # (parameters and optimizer state stay float32)
 IL_MODES, IL_STEPS, IL_NORMS = get_args(ILMode), get_args(ILStep), get_args(ILNorm)
+DTYPES = get_args(DType)
 
 
 INT32_MAX = 2 ** 31 - 1
@@ -160,6 +167,10 @@ class TrainConfig:
     keep_checkpoints: int = 2
     seed: int = 0
     run_dir: str = "runs/baseline-small"
+    # scale-out (docs/scale_out.md)
+    devices: int = 0                  # devices per process the env axis is sharded over
+                                      # (0: all local devices); a resume may change it
+    dtype: DType = "float32"          # bfloat16: bf16 matmuls, float32 parameters
 
     @property
     def steps_per_update(self) -> int:
@@ -184,7 +195,7 @@ class TrainConfig:
             raise ValueError(f"config field 'model': unknown model {self.model!r}, expected "
                              f"one of {sorted(ENCODERS)}")
         for name, allowed in (("il", IL_MODES), ("il_step", IL_STEPS),
-                              ("il_norm", IL_NORMS)):
+                              ("il_norm", IL_NORMS), ("dtype", DTYPES)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"config field {name!r}: {getattr(self, name)!r}, expected "
                                  f"one of {list(allowed)}")
@@ -200,6 +211,7 @@ class TrainConfig:
 # The range of every numeric TrainConfig field (dropout: [0, 1), checked apart).
 FIELD_RANGES: dict[str, Range] = {
     "scene_seed": SEED, "seed": SEED,
+    "devices": Range(lo=0, note="0: all local devices"),
     **{f: COUNT for f in ("glob_channels", "action_embed", "fuse_channels", "hidden",
                           "lstm_layers", "num_envs", "rollout_len", "total_env_steps",
                           "updates_per_chunk", "eval_every_chunks",
@@ -245,6 +257,40 @@ TRAIN_PRESETS.update({name: dict(row, dropout=TABLE_DROPOUT, run_dir=f"runs/{nam
                 for name, row in TABLE_ROWS.items()})
 
 
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """A named training budget (--budget): stage-1 env steps and stage-2 episodes.
+
+    Stage 1 counts env steps (whole updates of num_envs x rollout_len steps with
+    auto-reset), not episodes: an episode budget E becomes E x steps_per_episode env
+    steps, with steps_per_episode the mean training episode length (the cap is 30)."""
+    episodes: int              # stage-1 episodes the budget stands for
+    steps_per_episode: int     # mean env steps per training episode assumed
+    tpn_episodes: int          # stage-2 (TPN) training episodes
+    source: str                # where steps_per_episode comes from
+
+    @property
+    def env_steps(self) -> int:
+        return self.episodes * self.steps_per_episode
+
+    def describe(self) -> str:
+        return (f"budget: {self.episodes:,} episodes x {self.steps_per_episode} env steps "
+                f"per episode ({self.source}) = {self.env_steps:,} env steps for stage 1; "
+                f"{self.tpn_episodes:,} episodes for the TPN")
+
+
+BUDGETS: dict[str, Budget] = {
+    # The paper: 6 M training episodes (12 A3C workers), then 2 M episodes for the TPN.
+    # Episode length: env steps per finished episode over whole 5 M-step runs of the small
+    # benchmark's table (experiments/results/table_5m, 14 runs of baseline / IL / ORG /
+    # ORG+IL / IL-all / IL-failed, 3 seeds): 15.3-16.7, mean 16.2 (early episodes are
+    # short: the untrained policy says Done at random; the 30-step cap bounds it).
+    "paper": Budget(episodes=6_000_000, steps_per_episode=16, tpn_episodes=2_000_000,
+                    source="the mean training episode length of 5 M-step runs on the "
+                           "small benchmark, 15.3-16.7; the 30-step cap would give 180 M"),
+}
+
+
 def get_config(preset: str = "small", **overrides) -> TrainConfig:
     """A preset with fields replaced; clear errors for unknown presets or fields."""
     if preset not in TRAIN_PRESETS:
@@ -260,7 +306,8 @@ def get_config(preset: str = "small", **overrides) -> TrainConfig:
 def load_config(run_dir: str | Path) -> TrainConfig:
     """The TrainConfig saved in a training run directory (run_dir.read_config)."""
     from orgnav_jax.training.run_dir import read_config
-    return read_config(run_dir, TrainConfig, "nav", READABLE_VERSIONS, {2: V2_DEFAULTS})
+    return read_config(run_dir, TrainConfig, "nav", READABLE_VERSIONS,
+                       {2: {**V2_DEFAULTS, **V3_DEFAULTS}, 3: V3_DEFAULTS})
 
 
 def _parse_bool(text: str) -> bool:

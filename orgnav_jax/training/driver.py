@@ -2,6 +2,7 @@
 
     stage = Stage(name="train baseline", chunk=..., validate=..., ...)
     summary = run_stage(stage, runner, cfg, run_dir, resume, progress)
+    summaries = run_population(stage, runners, cfgs, run_dirs, resume)   # seeds in one program
 
 A stage (navigation training in training/loop.py, the TPN's stage 2 in tpn/stage2.py)
 supplies its jitted chunk, its val evaluation and what "better" means; `run_stage` does
@@ -9,8 +10,19 @@ the rest: resume from the newest readable checkpoint, config.json, metrics.jsonl
 TensorBoard (records after the resumed checkpoint dropped), the progress bar, the
 non-finite-loss stop, val every `eval_every_chunks` chunks with the best-on-val
 checkpoint, the latest-N checkpoints every `checkpoint_every_chunks` chunks, and the
-compile time of the first chunk. The caller holds the run directory open (checked and
-locked: training/run_dir.py).
+compile time of the first chunk, and (after the third chunk) the wall-time estimate of
+the rest of the run from the measured rate, compile excluded. The caller holds the run
+directory open (checked and locked: training/run_dir.py).
+
+A population (`run_population`: several seeds of one config) runs one jitted chunk for
+all members, whose runners are stacked on a leading axis (the stage's chunk is vmapped
+over it); then each member gets its slice of the metrics in its own metrics.jsonl, its
+own val evaluation, best-on-val and latest-N checkpoints in its own run directory. A
+population resumes from the newest checkpoint step all its members have.
+
+Several processes (jax.distributed): every process runs this loop with the same calls
+(the chunk, evaluations and orbax saves are collective or deterministic); process 0
+alone writes config.json, the logs and the progress bar.
 """
 
 from __future__ import annotations
@@ -30,6 +42,7 @@ from tqdm import tqdm
 from orgnav_jax.errors import UserError
 from orgnav_jax.training.checkpoints import RunCheckpoints
 from orgnav_jax.training.run_dir import MetricsLog, write_config
+from orgnav_jax.training.scale import is_primary
 
 
 class NonFiniteLoss(UserError, RuntimeError):
@@ -47,6 +60,8 @@ class Stage:
     score_keys: val fields compared in order (higher is better) to keep the best.
     best_keys: val fields kept in the 'best' record (with the step).
     progress_keys: train-record fields shown on the progress bar (mean of the last 10).
+    place(runner) -> the runner the chunk takes: the local runner (stacked for a
+        population) put on the device mesh (training/scale.py); default: as it is.
     """
     name: str                      # progress-bar label, e.g. "train baseline"
     unit: str                      # "step" or "ep"
@@ -60,6 +75,7 @@ class Stage:
     score_keys: tuple[str, ...]
     best_keys: tuple[str, ...]
     progress_keys: tuple[str, ...] = ()
+    place: Callable[[Any], Any] = lambda runner: runner
 
     @property
     def num_chunks(self) -> int:
@@ -74,60 +90,170 @@ def run_stage(stage: Stage, runner, cfg, run_dir: Path, resume: bool, progress: 
     """Run (or resume) `stage` from `runner` in the open run directory -> summary dict:
     run_dir, chunks, the step count under stage.step_name, best_val, compile and wall
     time, and the final runner. stop_after_chunks ends early (tests of kill-and-resume)."""
-    ckpt = RunCheckpoints(run_dir, cfg.keep_checkpoints)
-    best = {k: -1.0 for k in stage.score_keys}
-    chunk = 0
-    if resume and ckpt.latest_step() is not None:
-        runner, meta = ckpt.restore(runner, fallback=True)
-        chunk, best = meta["chunk"], meta["best"]
-    write_config(run_dir, cfg)      # after the restore: a failed resume changes nothing
-    log = MetricsLog(run_dir, step_name=stage.step_name,
-                     resume_from=chunk * stage.per_chunk if resume else None)
-    if resume:
-        ckpt.drop_best_after(chunk * stage.per_chunk)
+    return run_population(stage, [runner], [cfg], [Path(run_dir)], resume, progress,
+                          stop_after_chunks, stacked=False)[0]
+
+
+@dataclasses.dataclass
+class _Member:
+    """One run of a population: its config, directory, checkpoints, best and log."""
+    cfg: Any
+    run_dir: Path
+    ckpt: RunCheckpoints
+    best: dict
+    log: MetricsLog | None = None
+
+
+def _restore(members: list[_Member], runners: list, stacked: bool) -> tuple[int, list]:
+    """Resume: each member's runner from its checkpoint -> (chunks done, runners). One
+    run takes its newest readable checkpoint; a population the newest step every member
+    has (they save together, so at most the last save of a kill differs)."""
+    if not stacked:
+        m = members[0]
+        if m.ckpt.latest_step() is None:
+            return 0, runners
+        runner, meta = m.ckpt.restore(runners[0], fallback=True)
+        m.best = meta["best"]
+        return meta["chunk"], [runner]
+    steps = [set(m.ckpt.latest.all_steps()) for m in members]
+    if not any(steps):
+        return 0, runners
+    common = set.intersection(*steps)
+    if not common:
+        have = "; ".join(f"{m.run_dir}: {sorted(s) or 'none'}" for m, s in zip(members, steps))
+        raise UserError(f"--resume: the seeds' runs have no checkpoint step in common ({have}); "
+                        "resume them one seed at a time")
+    step, chunks, out = max(common), set(), []
+    for m, runner in zip(members, runners):
+        runner, meta = m.ckpt.restore(runner, step=step)
+        m.best = meta["best"]
+        chunks.add(meta["chunk"])
+        out.append(runner)
+    if len(chunks) != 1:
+        raise UserError(f"--resume: the seeds' checkpoints at step {step} are at different "
+                        f"chunks {sorted(chunks)}; resume them one seed at a time")
+    return chunks.pop(), out
+
+
+def _stack(runners: list):
+    return jax.tree_util.tree_map(lambda *xs: jax.numpy.stack(xs), *runners)
+
+
+@jax.jit
+def _take(tree, i):
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
+def _duration(seconds: float) -> str:
+    """12 s, 41 min, 3.2 h, 2.5 days."""
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 2 * 86400:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.1f} days"
+
+
+ESTIMATE_AFTER = 3     # chunks of this process before the wall-time estimate (1: compile)
+
+
+def wall_time_estimate(stage: Stage, chunk: int, seconds: list[float], members: int) -> str:
+    """The one-line estimate from the chunks timed after the compile chunk."""
+    per_chunk = float(np.mean(seconds))
+    rate = stage.per_chunk * members / per_chunk
+    left = (stage.num_chunks - chunk) * per_chunk
+    whole = stage.num_chunks * per_chunk
+    who = f" ({members} runs together)" if members > 1 else ""
+    return (f"{stage.name}: {rate:,.0f} {stage.unit}s/s{who} over chunks "
+            f"{chunk - len(seconds) + 1}-{chunk} (compile excluded): the remaining "
+            f"{stage.num_chunks - chunk} of {stage.num_chunks} chunks take about "
+            f"{_duration(left)} (a whole run: {_duration(whole)}; evaluations and "
+            "checkpoints extra)")
+
+
+def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path],
+                   resume: bool, progress: bool = True, stop_after_chunks: int | None = None,
+                   stacked: bool = True) -> list[dict]:
+    """Run (or resume) several runs of `stage` in one program -> one summary per run (see
+    run_stage). With stacked=True the runners are stacked on a leading axis and
+    stage.chunk/stage.place take the stack (metrics then have that axis); stage.validate
+    takes one member's runner. The callers hold the run directories open."""
+    primary = is_primary()
+    members = [_Member(cfg, Path(d), RunCheckpoints(d, cfg.keep_checkpoints),
+                       {k: -1.0 for k in stage.score_keys}) for cfg, d in zip(cfgs, run_dirs)]
+    chunk, runners = _restore(members, runners, stacked) if resume else (0, runners)
+    for m in members:      # after the restore: a failed resume changes nothing
+        if primary:
+            write_config(m.run_dir, m.cfg)
+            m.log = MetricsLog(m.run_dir, step_name=stage.step_name,
+                               resume_from=chunk * stage.per_chunk if resume else None)
+        if resume:
+            m.ckpt.drop_best_after(chunk * stage.per_chunk)
+    runner = stage.place(_stack(runners) if stacked else runners[0])
+    member_runner = (lambda i: _take(runner, i)) if stacked else (lambda i: runner)
     num_chunks = stage.num_chunks
     bar = tqdm(total=num_chunks * stage.per_chunk, initial=chunk * stage.per_chunk,
-               unit=stage.unit, unit_scale=True, desc=stage.name, disable=not progress,
-               file=sys.stderr)
+               unit=stage.unit, unit_scale=True, desc=stage.name,
+               disable=not (progress and primary), file=sys.stderr)
     recent: dict[str, list] = {k: [] for k in stage.progress_keys}
-    t_start, compile_s = time.perf_counter(), None
+    t_start, compile_s, timed = time.perf_counter(), None, []
     try:
         while chunk < num_chunks:
             t0 = time.perf_counter()
             new_runner, metrics = stage.chunk(runner)
             metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
-            finite = bool(metrics.pop("loss_finite"))
+            finite = np.atleast_1d(metrics.pop("loss_finite"))
             dt = time.perf_counter() - t0
-            compile_s = dt if compile_s is None else compile_s
-            if not finite:
-                raise NonFiniteLoss(f"non-finite loss in chunk {chunk + 1} of {stage.name}; "
-                                    "the run stopped and the last good checkpoint in "
-                                    f"{run_dir}/checkpoints is kept")
+            if compile_s is None:
+                compile_s = dt
+            else:
+                timed.append(dt)
+            if not finite.all():
+                bad = [str(m.run_dir) for m, ok in zip(members, finite) if not ok]
+                where = f" (run {', '.join(bad)})" if stacked else ""
+                raise NonFiniteLoss(f"non-finite loss in chunk {chunk + 1} of {stage.name}"
+                                    f"{where}; the run stopped and the last good checkpoint "
+                                    f"in {bad[0]}/checkpoints is kept")
             runner, chunk = new_runner, chunk + 1
             step = chunk * stage.per_chunk
-            record = stage.summarize(metrics)
-            record[stage.rate_key] = stage.per_chunk / dt
-            log.write("train", step, record)
-            for k in stage.progress_keys:
-                recent[k] = (recent[k] + [record[k]])[-10:]
+            for i, m in enumerate(members):
+                record = stage.summarize({k: v[i] for k, v in metrics.items()} if stacked
+                                         else metrics)
+                record[stage.rate_key] = stage.per_chunk / dt
+                if m.log:
+                    m.log.write("train", step, record)
+                for k in stage.progress_keys:
+                    recent[k] = (recent[k] + [record[k]])[-10 * len(members):]
             bar.update(stage.per_chunk)
-            bar.set_postfix(rate=f"{stage.per_chunk / dt:.0f}/s",
+            bar.set_postfix(rate=f"{stage.per_chunk * len(members) / dt:.0f}/s",
                             **{k: f"{np.mean(v):.3f}" for k, v in recent.items()},
-                            best_val=f"{best[stage.score_keys[0]]:.3f}")
+                            best_val=f"{max(m.best[stage.score_keys[0]] for m in members):.3f}")
+            if len(timed) == ESTIMATE_AFTER - 1 and chunk < num_chunks and primary:
+                bar.write(wall_time_estimate(stage, chunk, timed, len(members)),
+                          file=sys.stderr)
             last = chunk == num_chunks
-            if chunk % cfg.eval_every_chunks == 0 or last:
-                val = stage.validate(runner)
-                log.write("val", step, val)
-                if stage.score(val) > stage.score(best):
-                    best = {**{k: val[k] for k in stage.best_keys}, stage.step_name: step}
-                    ckpt.save(step, runner, {"chunk": chunk, "val": val}, best=True)
-            if chunk % cfg.checkpoint_every_chunks == 0 or last:
-                ckpt.save(step, runner, {"chunk": chunk, "best": best})
+            if chunk % cfgs[0].eval_every_chunks == 0 or last:
+                for i, m in enumerate(members):
+                    mine = member_runner(i)
+                    val = stage.validate(mine)
+                    if m.log:
+                        m.log.write("val", step, val)
+                    if stage.score(val) > stage.score(m.best):
+                        m.best = {**{k: val[k] for k in stage.best_keys},
+                                  stage.step_name: step}
+                        m.ckpt.save(step, mine, {"chunk": chunk, "val": val}, best=True)
+            if chunk % cfgs[0].checkpoint_every_chunks == 0 or last:
+                for i, m in enumerate(members):
+                    m.ckpt.save(step, member_runner(i), {"chunk": chunk, "best": m.best})
             if stop_after_chunks is not None and chunk >= stop_after_chunks and not last:
                 break
     finally:
         bar.close()
-        log.close()
-    return {"run_dir": str(run_dir), stage.step_name: chunk * stage.per_chunk,
-            "chunks": chunk, "best_val": best, "compile_plus_first_chunk_s": compile_s,
-            "wall_s": time.perf_counter() - t_start, "runner": runner}
+        for m in members:
+            if m.log:
+                m.log.close()
+    wall = time.perf_counter() - t_start
+    return [{"run_dir": str(m.run_dir), stage.step_name: chunk * stage.per_chunk,
+             "chunks": chunk, "best_val": m.best, "compile_plus_first_chunk_s": compile_s,
+             "wall_s": wall, "runner": member_runner(i)} for i, m in enumerate(members)]

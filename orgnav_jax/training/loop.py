@@ -1,16 +1,24 @@
 """Stage 1, navigation training: the jitted A2C chunk on the host loop.
 
     result = train(cfg, resume=False)
+    results = train_seeds(cfg, seeds=(0, 1, 2))     # one program, a run dir per seed
 
 Each chunk is `cfg.updates_per_chunk` jitted updates (training/update.py); the host loop
 (training/driver.py) logs, evaluates on the val episodes every `eval_every_chunks`
 chunks keeping the best parameters, and saves the whole RunnerState every
 `checkpoint_every_chunks`. With resume=True it continues from the latest checkpoint and
 ends with the same parameters an uninterrupted run reaches (on the same machine).
+
+With several devices (cfg.devices, training/scale.py) the env axis of the runner is
+sharded over them and the parameters replicated; `train_seeds` trains several seeds of
+one config as a population axis of one jitted chunk (vmap), each seed in its own run
+directory `seed_run_dir(cfg.run_dir, seed)` = `<run_dir>-s<seed>`.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 from pathlib import Path
 
 import jax
@@ -20,9 +28,11 @@ from orgnav_jax.compile_cache import compiled_once, computation_of
 from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import build_model
 from orgnav_jax.training.config import TrainConfig, load_config
-from orgnav_jax.training.driver import NonFiniteLoss, Stage, run_stage  # noqa: F401 (API)
+from orgnav_jax.errors import UserError
+from orgnav_jax.training import scale
+from orgnav_jax.training.driver import (  # noqa: F401 (API)
+    NonFiniteLoss, Stage, run_population, run_stage)
 from orgnav_jax.training.runs import model_policy, preflight, split_on_device
-from orgnav_jax.training.run_dir import open_run_dir
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 
 
@@ -30,7 +40,7 @@ from orgnav_jax.training.update import init_runner, make_optimizer, make_train_c
 # share one compiled program)
 HOST_ONLY_FIELDS = ("run_dir", "total_env_steps", "eval_every_chunks",
                     "eval_episodes_per_room_type", "checkpoint_every_chunks",
-                    "keep_checkpoints", "seed")
+                    "keep_checkpoints", "seed", "devices")   # devices: the mesh is a key
 
 
 def compute_config(cfg: TrainConfig) -> TrainConfig:
@@ -39,11 +49,18 @@ def compute_config(cfg: TrainConfig) -> TrainConfig:
 
 
 @compiled_once
-def cached_train_chunk(cfg: TrainConfig, model):
+def cached_train_chunk(cfg: TrainConfig, model, mesh=None, population: bool = False):
     """(optimizer, jitted train chunk), shared by runs in one process that differ only in
-    seed, budget or run directory (so they compile once)."""
+    seed, budget or run directory (so they compile once); sharded over `mesh` (None: one
+    device), vmapped over a seed axis if `population`."""
     optimizer = make_optimizer(cfg)
-    return optimizer, make_train_chunk(cfg, model, optimizer)
+    return optimizer, make_train_chunk(cfg, model, optimizer, mesh=mesh,
+                                       population=population)
+
+
+def seed_run_dir(run_dir: str, seed: int) -> str:
+    """The run directory of one seed of a population: <run_dir>-s<seed>."""
+    return f"{str(run_dir).rstrip('/')}-s{seed}"
 
 
 def chunk_summary(m: dict) -> dict:
@@ -66,13 +83,43 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
           stop_after_chunks: int | None = None) -> dict:
     """Train (or resume) the run in cfg.run_dir -> summary dict (best val, env steps).
     stop_after_chunks ends early (for tests of kill-and-resume)."""
+    mesh = scale.make_mesh(cfg.devices)
+    scale.check_batch(cfg.num_envs, mesh)
     scenes = preflight(cfg)     # config ranges, scenes, memory: before anything is written
-    with open_run_dir(cfg.run_dir, cfg, resume, load_config) as run_dir:
-        return _train(cfg, scenes, run_dir, resume, progress, stop_after_chunks)
+    with scale.open_shared_run_dir(cfg.run_dir, cfg, resume, load_config) as run_dir:
+        return _train([cfg], scenes, [run_dir], mesh, resume, progress,
+                      stop_after_chunks)[0]
 
 
-def _train(cfg: TrainConfig, scenes, run_dir: Path, resume: bool, progress: bool,
-           stop_after_chunks: int | None) -> dict:
+def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = True,
+                stop_after_chunks: int | None = None) -> list[dict]:
+    """Train (or resume) cfg with each of `seeds` in one program (a vmapped population
+    axis), seed s in seed_run_dir(cfg.run_dir, s) -> one summary per seed. One seed is
+    an ordinary run (in its -s<seed> directory)."""
+    seeds = [int(s) for s in seeds]
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise UserError(f"--seeds {' '.join(map(str, seeds))}: expected distinct seeds")
+    cfgs = [dataclasses.replace(cfg, seed=s, run_dir=seed_run_dir(cfg.run_dir, s))
+            for s in seeds]
+    if len(cfgs) == 1:
+        return [train(cfgs[0], resume, progress, stop_after_chunks)]
+    for c in cfgs:
+        c.validate()
+    mesh = scale.make_mesh(cfg.devices)
+    scale.check_batch(cfg.num_envs, mesh)
+    scenes = preflight(cfgs[0])
+    with contextlib.ExitStack() as stack:
+        run_dirs = [stack.enter_context(scale.open_shared_run_dir(c.run_dir, c, resume,
+                                                                  load_config))
+                    for c in cfgs]
+        return _train(cfgs, scenes, run_dirs, mesh, resume, progress, stop_after_chunks,
+                      population=True)
+
+
+def _train(cfgs: list[TrainConfig], scenes, run_dirs: list[Path], mesh, resume: bool,
+           progress: bool, stop_after_chunks: int | None,
+           population: bool = False) -> list[dict]:
+    cfg = cfgs[0]
     # one device copy per split in the process (shared with a later evaluation); the
     # test rooms of the memory-mapped set are never read
     train_scenes = split_on_device(cfg, "train")
@@ -80,14 +127,27 @@ def _train(cfg: TrainConfig, scenes, run_dir: Path, resume: bool, progress: bool
     val_episodes = sample_episodes(val_scenes, cfg.eval_episodes_per_room_type, seed=0,
                                    split="val")
     model = build_model(cfg, train_scenes)
-    optimizer, train_chunk = cached_train_chunk(compute_config(cfg), model)
-    runner = init_runner(cfg, model, optimizer, train_scenes, jax.random.PRNGKey(cfg.seed))
+    optimizer, train_chunk = cached_train_chunk(compute_config(cfg), model, mesh,
+                                                population)
+    runners = [init_runner(c, model, optimizer, train_scenes, jax.random.PRNGKey(c.seed))
+               for c in cfgs]
+    if mesh is None:
+        chunk_scenes, place = train_scenes, (lambda runner: runner)
+    else:        # the scene set replicated on every device; the env axis sharded
+        chunk_scenes = scale.place(train_scenes, scale.replicated(train_scenes, mesh))
+        place = lambda runner: scale.place(runner, scale.runner_shardings(runner, mesh,
+                                                                         population))
     stage = Stage(
         name=f"train {cfg.model}", unit="step", step_name="env_steps", rate_key="steps_per_s",
         per_chunk=cfg.updates_per_chunk * cfg.steps_per_update,
         total=cfg.num_updates * cfg.steps_per_update,
-        chunk=lambda runner: train_chunk(runner, train_scenes), summarize=chunk_summary,
-        validate=lambda runner: evaluate_on_val(model, runner.params, val_scenes, val_episodes),
+        chunk=lambda runner: train_chunk(runner, chunk_scenes), summarize=chunk_summary,
+        validate=lambda runner: evaluate_on_val(model, scale.local_copy(runner.params), val_scenes,
+                                         val_episodes),
         score_keys=("success", "spl"), best_keys=("spl", "success"),
-        progress_keys=("success",))
-    return run_stage(stage, runner, cfg, run_dir, resume, progress, stop_after_chunks)
+        progress_keys=("success",), place=place)
+    if population:
+        return run_population(stage, runners, cfgs, run_dirs, resume, progress,
+                              stop_after_chunks)
+    return [run_stage(stage, runners[0], cfg, run_dirs[0], resume, progress,
+                      stop_after_chunks)]

@@ -60,18 +60,27 @@ def imitation_loss(logits, expert_action, mask, norm: str = "masked_mean"):
     return (ce * mask).sum() / denom, mask.sum()
 
 
-def replay(model, params, scenes, traj, carry0, dropout: float = 0.0):
+def replay(model, params, scenes, traj, carry0, dropout: float = 0.0,
+           batch_major: bool = False):
     """Re-run the model over a trajectory from the carry at its start -> (logits (T,N,6),
     values (T,N)). The non-recurrent part runs once over all T*N steps (large matmuls);
     only the recurrence is scanned. With dropout, each step's masks are rebuilt from the
-    key the rollout kept (traj.drop_key), so the replay sees exactly the rollout's masks."""
+    key the rollout kept (traj.drop_key), so the replay sees exactly the rollout's masks.
+    batch_major flattens the steps env-major (N*T) rather than time-major (T*N): with the
+    env axis sharded over devices (training/scale.py) the flat axis then stays sharded,
+    where a time-major flattening makes XLA gather every step onto every device."""
     T, N = traj.fresh.shape
-    flat_obs = jax.tree_util.tree_map(lambda x: x.reshape((T * N,) + x.shape[2:]), traj.obs)
-    inputs = model_inputs(scenes, flat_obs)
+    if batch_major:
+        flat = lambda x: jnp.swapaxes(x, 0, 1).reshape((N * T,) + x.shape[2:])
+        unflat = lambda x: jnp.swapaxes(x.reshape((N, T) + x.shape[1:]), 0, 1)
+    else:
+        flat = lambda x: x.reshape((T * N,) + x.shape[2:])
+        unflat = lambda x: x.reshape((T, N) + x.shape[1:])
+    inputs = model_inputs(scenes, jax.tree_util.tree_map(flat, traj.obs))
     if dropout:
         masks = jax.vmap(lambda k: dropout_mask(k, dropout, model.dropout_shape(N)))(
             traj.drop_key)
-        inputs = inputs._replace(drop=masks.reshape((T * N,) + masks.shape[2:]))
+        inputs = inputs._replace(drop=flat(masks))
     gates = model.apply(params, inputs, method=model.embed)
 
     def body(carry, x):
@@ -80,13 +89,15 @@ def replay(model, params, scenes, traj, carry0, dropout: float = 0.0):
                                               method=model.recur)
         return carry, (logits, value)
 
-    _, (logits, values) = jax.lax.scan(body, carry0, (gates.reshape(T, N, -1), traj.fresh))
+    _, (logits, values) = jax.lax.scan(body, carry0, (unflat(gates), traj.fresh))
     return logits, values
 
 
-def a2c_loss(params, model, scenes, traj, carry0, advantages, returns, cfg):
-    """Navigation loss (policy gradient + value + entropy) + il_weight * IL -> (loss, aux)."""
-    logits, values = replay(model, params, scenes, traj, carry0, cfg.dropout)
+def a2c_loss(params, model, scenes, traj, carry0, advantages, returns, cfg,
+             batch_major: bool = False):
+    """Navigation loss (policy gradient + value + entropy) + il_weight * IL -> (loss, aux).
+    batch_major: see replay."""
+    logits, values = replay(model, params, scenes, traj, carry0, cfg.dropout, batch_major)
     logp_all = jax.nn.log_softmax(logits)
     logp = jnp.take_along_axis(logp_all, traj.action[..., None], -1)[..., 0]
     policy_loss = -(jax.lax.stop_gradient(advantages) * logp).mean()

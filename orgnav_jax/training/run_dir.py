@@ -15,8 +15,9 @@ Layout (both training stages):
 Guarantees: a fresh run refuses a non-empty directory (another run, or anything else);
 two processes never train in one directory (the lock; a lock left by a process that no
 longer runs on this host is taken over with a notice); --resume compares the saved config
-with the requested one except for the budget (which may grow) and locations (run_dir,
-scenes_dir, base_dir: a copied or moved run resumes where it now is).
+with the requested one except for the budget (which may grow), locations (run_dir,
+scenes_dir, base_dir: a copied or moved run resumes where it now is) and the number of
+devices (a run may resume on more or fewer devices: training/scale.py).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ LOCK_FILE = ".lock"
 METRICS_FILE = "metrics.jsonl"
 BUDGET_FIELDS = ("total_env_steps", "total_episodes")   # a resume may extend these
 LOCATION_FIELDS = ("run_dir", "scenes_dir", "base_dir")  # a resume follows the given ones
+PLACEMENT_FIELDS = ("devices",)   # where a run computes, not what: a resume may change it
 
 
 STAGES = {"nav": "training", "tpn": "TPN (stage 2)"}   # the kinds of run, in words
@@ -171,8 +173,9 @@ def _mtime(path: Path) -> float:
 
 
 def config_differences(saved, wanted) -> list[str]:
-    """Fields (other than budget and locations) where two configs differ, as 'f: a -> b'."""
-    skip = set(BUDGET_FIELDS) | set(LOCATION_FIELDS)
+    """Fields (other than budget, locations and placement) where two configs differ, as
+    'f: a -> b'."""
+    skip = set(BUDGET_FIELDS) | set(LOCATION_FIELDS) | set(PLACEMENT_FIELDS)
     return [f"{f.name}: {getattr(saved, f.name)!r} -> {getattr(wanted, f.name)!r}"
             for f in dataclasses.fields(saved)
             if f.name not in skip and getattr(saved, f.name) != getattr(wanted, f.name)]

@@ -3,6 +3,11 @@
     init_runner(cfg, model, scenes, key)      -> RunnerState
     train_chunk(runner, scenes)               -> (RunnerState, metrics dict of scalars)
 where train_chunk = make_train_chunk(cfg, model, optimizer), jitted once.
+
+make_train_chunk(..., mesh=mesh) pins the runner's shardings (env axis over the mesh's
+"data" axis, the rest replicated: training/scale.py) at every update; population=True
+vmaps the chunk over a leading seed axis of the runner (several seeds in one program:
+metrics then have that axis too). With neither, the program is the plain one-device one.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from orgnav_jax import env
 from orgnav_jax.models import init_params
 from orgnav_jax.training.config import TrainConfig
 from orgnav_jax.training.losses import a2c_loss, gae
+from orgnav_jax.training.scale import constrain
 from orgnav_jax.training.rollout import EpisodeStats, RunnerState, rollout
 
 
@@ -40,26 +46,27 @@ def init_runner(cfg: TrainConfig, model, optimizer, scenes, key) -> RunnerState:
                        update=jnp.int32(0))
 
 
-def make_train_chunk(cfg: TrainConfig, model, optimizer):
-    """A jitted (runner, scenes) -> (runner, metrics) doing cfg.updates_per_chunk updates."""
+def make_train_chunk(cfg: TrainConfig, model, optimizer, mesh=None, population=False):
+    """A jitted (runner, scenes) -> (runner, metrics) doing cfg.updates_per_chunk updates
+    (sharded over `mesh`; vmapped over a leading seed axis if `population`)."""
     params_env = env_params(cfg)
     grad_fn = jax.value_and_grad(a2c_loss, has_aux=True)
 
-    @jax.jit
     def train_chunk(runner: RunnerState, scenes):
         def one_update(carry, _):
             runner, stats = carry
+            runner = constrain(runner, mesh)
             carry0 = runner.carry
             runner, traj, last_value, ep = rollout(model, runner, scenes, params_env,
                                                    cfg.rollout_len, cfg.dropout)
             adv, ret = gae(traj.reward, traj.value, traj.done, last_value, cfg.gamma,
                            cfg.gae_lambda)
             (loss, aux), grads = grad_fn(runner.params, model, scenes, traj, carry0, adv,
-                                         ret, cfg)
+                                         ret, cfg, batch_major=mesh is not None)
             updates, opt_state = optimizer.update(grads, runner.opt_state, runner.params)
             params = optax.apply_updates(runner.params, updates)
-            runner = runner.replace(params=params, opt_state=opt_state,
-                                    update=runner.update + 1)
+            runner = constrain(runner.replace(params=params, opt_state=opt_state,
+                                              update=runner.update + 1), mesh)
             stats = jax.tree_util.tree_map(jnp.add, stats, ep)
             return (runner, stats), dict(aux, loss=loss, grad_norm=optax.tree.norm(grads))
 
@@ -71,4 +78,4 @@ def make_train_chunk(cfg: TrainConfig, model, optimizer):
                        ret=stats.ret, length=stats.length)
         return runner, metrics
 
-    return train_chunk
+    return jax.jit(jax.vmap(train_chunk, in_axes=(0, None)) if population else train_chunk)

@@ -1,0 +1,476 @@
+"""Scale-out (issue 16): data parallel over a 2-device mesh, resume across device counts,
+seeds in one program, several processes, bf16. The multi-device checks run in
+subprocesses (tests/scale_worker.py) with XLA_FLAGS=--xla_force_host_platform_device_count=2,
+which must be set before jax is imported."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+import orgnav_jax
+from orgnav_jax import scenes as scenes_mod
+
+WORKER = Path(__file__).with_name("scale_worker.py")
+PACKAGE_ROOT = str(Path(orgnav_jax.__file__).resolve().parent.parent)
+
+
+def subprocess_env(devices: int = 2) -> dict:
+    """The environment of a child: this checkout's package first, `devices` CPU devices."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([PACKAGE_ROOT] + [p for p in env.get(
+        "PYTHONPATH", "").split(os.pathsep) if p])
+    flags = [f for f in env.get("XLA_FLAGS", "").split()
+             if not f.startswith("--xla_force_host_platform_device_count")]
+    env["XLA_FLAGS"] = " ".join(flags + [f"--xla_force_host_platform_device_count={devices}"])
+    env["JAX_PLATFORMS"] = "cpu"
+    return env
+
+
+def run_worker(task: str, out: Path, scenes_dir: str, *args, timeout: int = 900) -> dict:
+    proc = subprocess.run([sys.executable, str(WORKER), task, str(out), scenes_dir,
+                           *map(str, args)], env=subprocess_env(), capture_output=True,
+                          text=True, timeout=timeout)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return json.loads((out / "result.json").read_text())
+
+
+def leaves(path) -> list[np.ndarray]:
+    z = np.load(path)
+    return [z[f"arr_{i}"] for i in range(len(z.files))]
+
+
+def assert_close(a_path, b_path, rtol=1e-5, atol=1e-6):
+    """Float leaves within tolerance (reduction order differs across devices), integer
+    and bool leaves (env states, counters, keys) equal."""
+    a, b = leaves(a_path), leaves(b_path)
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert x.shape == y.shape and x.dtype == y.dtype
+        if x.dtype.kind == "f":
+            np.testing.assert_allclose(x, y, rtol=rtol, atol=atol)
+        else:
+            np.testing.assert_array_equal(x, y)
+
+
+@pytest.fixture(scope="module")
+def tiny_dir(tmp_path_factory, tiny_scenes):
+    path = tmp_path_factory.mktemp("scenes") / "tiny"
+    scenes_mod.save(tiny_scenes, path)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def chunk_result(tmp_path_factory, tiny_dir):
+    out = tmp_path_factory.mktemp("chunk")
+    return out, run_worker("chunk", out, tiny_dir)
+
+
+@pytest.fixture(scope="module")
+def runs_result(tmp_path_factory, tiny_dir):
+    out = tmp_path_factory.mktemp("runs")
+    return out, run_worker("runs", out, tiny_dir)
+
+
+def test_a_chunk_on_two_devices_equals_one_device(chunk_result):
+    """3 chunks (6 updates, IL and dropout on) of 16 envs sharded 8 + 8 over 2 devices
+    give the parameters, optimizer and env states of the same global batch on one."""
+    out, r = chunk_result
+    assert r["devices"] == 2 and r["fresh_devices"] == 2 and "data" in r["fresh_spec"]
+    assert r["params_replicated"]
+    for one, two in r["losses"]:
+        assert one == pytest.approx(two, rel=1e-5, abs=1e-6)
+    assert_close(out / "one.npz", out / "two.npz")
+
+
+def test_the_sharded_chunk_is_data_parallel(chunk_result):
+    """The gradient mean is an all-reduce; nothing is gathered onto every device (the
+    replay flattens the steps env-major, so the env axis stays sharded); one compile."""
+    _, r = chunk_result
+    assert r["all_reduce"] >= 1 and r["all_gather"] == 0 and r["compiles"] == 1
+
+
+def test_kill_and_resume_on_two_devices_equals_an_uninterrupted_run(runs_result):
+    out, r = runs_result
+    assert r["resumed2_chunks"] == 4
+    for a, b in zip(leaves(out / "full2.npz"), leaves(out / "resumed2.npz")):
+        np.testing.assert_array_equal(a, b)
+    log = [json.loads(line) for line in (out / "killed2" / "metrics.jsonl").open()]
+    assert [x["env_steps"] for x in log if x["kind"] == "train"] == [256, 512, 768, 1024]
+
+
+def test_a_one_device_run_resumes_on_two_devices(runs_result):
+    """Checkpoints hold global arrays: a run saved on 1 device continues on 2 (restored,
+    then put on the mesh) and ends where a 1-device run ends, within float tolerance."""
+    out, r = runs_result
+    assert r["moved_chunks"] == 4 and r["moved_fresh_devices"] == 2
+    assert_close(out / "full1.npz", out / "one_then_two.npz")
+    assert_close(out / "full1.npz", out / "full2.npz")
+    assert json.loads((out / "one_then_two" / "config.json").read_text())["devices"] == 2
+
+
+def test_a_two_device_run_loads_in_a_one_device_process(runs_result):
+    """Evaluation and stage 2 load a run's parameters in any process: a checkpoint saved
+    from a 2-device mesh restores onto this process's one device (also from shapes
+    alone, the latest-checkpoint path of load_run_model)."""
+    from orgnav_jax.training.runs import load_run_model
+    out, _ = runs_result
+    _, latest, _ = load_run_model(out / "full2", best=False)
+    saved = leaves(out / "full2.npz")        # RunnerState leaves: params first
+    got = [np.asarray(x) for x in jax.tree_util.tree_leaves(latest)]
+    for a, b in zip(got, saved[:len(got)]):
+        np.testing.assert_array_equal(a, b)
+    _, best, _ = load_run_model(out / "full2", best=True)
+    assert len(jax.tree_util.tree_leaves(best)) == len(got)
+
+
+def _cli(args, tmp_path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "orgnav_jax.train", *map(str, args)],
+                          env=subprocess_env(), capture_output=True, text=True,
+                          timeout=300, cwd=tmp_path)
+
+
+def test_devices_errors_are_one_line(tmp_path, tiny_dir):
+    base = ["--preset", "tiny", "--scenes-dir", tiny_dir, "--run-dir", tmp_path / "r"]
+    for extra, message in ((["--devices", "2", "--num-envs", "15"],
+                            "error: num_envs 15 does not divide by the 2 devices"),
+                           (["--devices", "3"], "error: --devices 3: this process sees 2 cpu")):
+        proc = _cli(base + extra, tmp_path)
+        assert proc.returncode == 2, proc.stderr[-2000:]
+        last = proc.stderr.strip().splitlines()[-1]
+        assert last.startswith(message), last
+        assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "r").exists()
+
+
+# ------------------------------------------------------------------ seeds in one program
+
+def records(run_dir, kind: str) -> list[dict]:
+    return [r for r in map(json.loads, (Path(run_dir) / "metrics.jsonl").open())
+            if r["kind"] == kind]
+
+
+def assert_records_close(a: list[dict], b: list[dict], skip=("steps_per_s",)):
+    assert len(a) == len(b) and a
+    for x, y in zip(a, b):
+        assert set(x) == set(y)
+        for k in x:
+            if k not in skip:
+                assert x[k] == pytest.approx(y[k], rel=1e-5, abs=1e-6), (k, x, y)
+
+
+def test_seeds_in_one_program_equal_separate_runs(tmp_path, tiny_dir, capsys):
+    """`--seeds 0 1` (one vmapped program, RUN_DIR-s0 and RUN_DIR-s1) gives each seed the
+    parameters of a separate run within float tolerance, the same val records, its own
+    config, log and checkpoints."""
+    from orgnav_jax import train as train_cli
+    from orgnav_jax.training import loop
+    from orgnav_jax.training.runs import load_run_model
+    small = ["--preset", "tiny", "--scenes-dir", tiny_dir, "--num-envs", 16, "--rollout-len",
+             8, "--updates-per-chunk", 2, "--total-env-steps", 1024, "--eval-every-chunks", 2,
+             "--eval-episodes-per-room-type", 4, "--checkpoint-every-chunks", 1, "--il",
+             "deadlock", "--no-test", "--quiet"]
+    out = train_cli.main([str(a) for a in small + ["--run-dir", tmp_path / "pop",
+                                                    "--seeds", 0, 1]])
+    err = capsys.readouterr().err
+    assert "steps/s (2 runs together) over chunks 2-3 (compile excluded): the remaining 1 " \
+        "of 4 chunks take about" in err
+    assert [r["run_dir"] for r in out["runs"]] == [str(tmp_path / "pop-s0"),
+                                                   str(tmp_path / "pop-s1")]
+    assert not (tmp_path / "pop").exists()
+    for seed in (0, 1):
+        cfg = loop.load_config(tmp_path / f"pop-s{seed}")
+        assert cfg.seed == seed
+        alone = dataclasses.replace(cfg, run_dir=str(tmp_path / f"alone-s{seed}"))
+        loop.train(alone, progress=False)
+        assert_records_close(records(tmp_path / f"pop-s{seed}", "train"),
+                             records(tmp_path / f"alone-s{seed}", "train"))
+        assert [dict(r) for r in records(tmp_path / f"pop-s{seed}", "val")] == \
+            records(tmp_path / f"alone-s{seed}", "val")
+        _, a, _ = load_run_model(tmp_path / f"pop-s{seed}", best=False)
+        _, b, _ = load_run_model(tmp_path / f"alone-s{seed}", best=False)
+        for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
+    # the two seeds really differ
+    s0 = records(tmp_path / "pop-s0", "train")[0]
+    s1 = records(tmp_path / "pop-s1", "train")[0]
+    assert s0["loss"] != s1["loss"]
+
+
+@pytest.fixture(scope="module")
+def seeds_result(tmp_path_factory, tiny_dir):
+    out = tmp_path_factory.mktemp("seeds")
+    return out, run_worker("seeds", out, tiny_dir)
+
+
+def test_seeds_on_two_devices_resume_and_equal_separate_runs(seeds_result):
+    """A population on 2 devices (seed axis vmapped, env axis sharded): killed after 2
+    chunks and resumed it equals the uninterrupted population; each seed equals its
+    separate 1-device run within float tolerance."""
+    out, r = seeds_result
+    assert r["killed_chunks"] == [2, 2] and r["resumed_chunks"] == [4, 4]
+    assert r["fresh_devices"] == 2
+    for seed in (0, 1):
+        for a, b in zip(leaves(out / f"pop-s{seed}.npz"),
+                        leaves(out / f"resumed-s{seed}.npz")):
+            np.testing.assert_array_equal(a, b)
+        assert_close(out / f"one-s{seed}.npz", out / f"pop-s{seed}.npz")
+        assert [x["env_steps"] for x in records(out / f"killed-s{seed}", "train")] == \
+            [256, 512, 768, 1024]
+
+
+def test_seeds_errors(tmp_path, tiny_dir, cli_error):
+    from orgnav_jax import train as train_cli
+    base = ["--preset", "tiny", "--scenes-dir", tiny_dir, "--run-dir", tmp_path / "r"]
+    assert cli_error(train_cli.main, base + ["--seeds", 0, 0]) == \
+        "error: --seeds 0 0: expected distinct seeds"
+    assert cli_error(train_cli.main, base + ["--seeds", 0, 1, "--seed", 3]) == \
+        "error: --seed and --seeds: give one"
+    assert not (tmp_path / "r-s0").exists()
+
+
+def test_run_table_trains_the_seeds_of_a_row_in_one_program(tmp_path, tiny_dir, monkeypatch):
+    """experiments/run_table.py --population: the row's seeds train through
+    api.train_seeds (one program), then each is tested and tabled as before."""
+    import importlib.util
+
+    from orgnav_jax import api
+    path = Path(__file__).parents[1] / "experiments" / "run_table.py"
+    spec = importlib.util.spec_from_file_location("run_table", path)
+    run_table = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(run_table)
+    calls = []
+    real = api.train_seeds
+    monkeypatch.setattr(api, "train_seeds",
+                        lambda cfg, seeds, **kw: calls.append(list(seeds)) or
+                        real(cfg, seeds, **kw))
+    # run_one then resumes each finished run (a no-op) before testing it
+    real_train = api.train
+    monkeypatch.setattr(api, "train", lambda cfg, resume=False, **kw: real_train(
+        cfg, resume=resume, **kw) if resume else pytest.fail("trained one by one"))
+    out = tmp_path / "table"
+    run_table.main(["--rows", "baseline", "--seeds", "0", "1", "--population", "--out",
+                    str(out), "--scenes-dir", tiny_dir, "--num-envs", "16",
+                    "--rollout-len", "8", "--updates-per-chunk", "2", "--total-env-steps",
+                    "512", "--eval-every-chunks", "2", "--eval-episodes-per-room-type", "4"])
+    assert calls == [[0, 1]]
+    results = json.loads((out / "results.json").read_text())
+    assert sorted(results["baseline"]) == ["0", "1"]
+    for seed in (0, 1):
+        assert (out / "runs" / f"baseline-s{seed}" / "test_results.json").exists()
+        assert loop_config(out / "runs" / f"baseline-s{seed}").seed == seed
+        assert [r["env_steps"] for r in records(out / "runs" / f"baseline-s{seed}",
+                                                "train")] == [256, 512]
+
+
+def loop_config(run_dir):
+    from orgnav_jax.training.config import load_config
+    return load_config(run_dir)
+
+
+# ------------------------------------------------------------------ several processes
+
+def free_port() -> int:
+    import socket
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def two_processes(args, tmp_path, timeout: int = 600) -> list[subprocess.CompletedProcess]:
+    """`python -m orgnav_jax.train ARGS` as processes 0 and 1 of a jax.distributed job on
+    this machine (one CPU device each, gloo collectives) -> both results."""
+    port = free_port()
+    procs = [subprocess.Popen(
+        [sys.executable, "-m", "orgnav_jax.train", *map(str, args), "--coordinator",
+         f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)],
+        env=subprocess_env(devices=1), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, cwd=tmp_path) for i in (0, 1)]
+    results = []
+    try:
+        for p in procs:
+            out, err = p.communicate(timeout=timeout)
+            results.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for r in results:
+        assert r.returncode == 0, r.stderr[-4000:]
+    return results
+
+
+def printed(proc) -> list[str]:
+    """stdout lines of a process other than gloo's connection notice."""
+    return [line for line in proc.stdout.splitlines() if not line.startswith("[Gloo]")]
+
+
+def test_two_processes_train_the_tiny_preset_and_write_one_set_of_logs(
+        tmp_path, tiny_dir, runs_result):
+    """2 processes x 1 CPU device (jax.distributed, gloo) train the tiny preset as one
+    2-device mesh: process 0 alone writes config.json, metrics.jsonl, TensorBoard and
+    prints; orbax checkpoints are written together; a 2-process resume that extends the
+    budget continues them. The records equal a 1-process 2-device run's (float
+    tolerance)."""
+    run = tmp_path / "run"
+    small = ["--preset", "tiny", "--scenes-dir", tiny_dir, "--num-envs", 16, "--rollout-len",
+             8, "--updates-per-chunk", 2, "--eval-every-chunks", 2,
+             "--eval-episodes-per-room-type", 4, "--checkpoint-every-chunks", 1,
+             "--run-dir", run, "--no-test", "--quiet"]
+    first = two_processes(small + ["--total-env-steps", 512], tmp_path)
+    assert "run " in first[0].stdout and '"chunks": 2' in first[0].stdout
+    assert printed(first[1]) == []
+    assert [r["env_steps"] for r in records(run, "train")] == [256, 512]
+    second = two_processes(["--resume", "--run-dir", run, "--total-env-steps", 1024,
+                            "--no-test", "--quiet"], tmp_path)
+    assert '"chunks": 4' in second[0].stdout and printed(second[1]) == []
+    assert sorted(p.name for p in run.iterdir() if not p.name.startswith("tb")) == \
+        ["best", "checkpoints", "config.json", "metrics.jsonl"]
+    out, _ = runs_result          # the same config on 2 devices of one process
+    assert_records_close(records(run, "train"), records(out / "full2", "train"))
+    assert_records_close(records(run, "val"), records(out / "full2", "val"))
+    assert json.loads((run / "config.json").read_text())["total_env_steps"] == 1024
+
+
+def test_process_options_go_together(tmp_path, tiny_dir, cli_error):
+    from orgnav_jax import train as train_cli
+    base = ["--preset", "tiny", "--scenes-dir", tiny_dir, "--run-dir", tmp_path / "r"]
+    assert "--coordinator, --num-processes and --process-id go together" in cli_error(
+        train_cli.main, base + ["--coordinator", "localhost:1234"])
+    assert "expected HOST:PORT" in cli_error(
+        train_cli.main, base + ["--coordinator", "localhost", "--num-processes", 2,
+                                "--process-id", 0])
+    assert "0 <= process id < number of processes" in cli_error(
+        train_cli.main, base + ["--coordinator", "localhost:1", "--num-processes", 2,
+                                "--process-id", 2])
+
+
+# ------------------------------------------------------------------ the paper's budget
+
+def test_budget_paper_is_6m_episodes_and_2m_tpn_episodes(cli_error, tmp_path):
+    """Stage 1 counts env steps: 6 M episodes x 16 steps (the measured mean training
+    episode length) = 96 M; the TPN counts episodes: 2 M."""
+    from orgnav_jax import train as train_cli
+    from orgnav_jax.training.config import BUDGETS
+    paper = BUDGETS["paper"]
+    assert (paper.episodes, paper.steps_per_episode, paper.tpn_episodes) == \
+        (6_000_000, 16, 2_000_000)
+    cfg = train_cli.nav_config(train_cli.parser().parse_args(["--budget", "paper"]))
+    assert cfg.total_env_steps == 96_000_000 and cfg.env_steps_run >= 96_000_000
+    assert "6,000,000 episodes x 16 env steps per episode" in paper.describe()
+    assert cli_error(train_cli.main, ["--budget", "paper", "--total-env-steps", "5"]) == \
+        "error: --budget and --total-env-steps set the same budget: give one"
+    assert cli_error(train_cli.main, ["--stage", "tpn", "--budget", "paper",
+                                      "--total-episodes", "5"]) == \
+        "error: --budget and --total-episodes set the same budget: give one"
+
+
+def test_wall_time_estimate_from_the_timed_chunks():
+    from orgnav_jax.training.driver import Stage, wall_time_estimate
+    stage = Stage(name="train org", unit="step", step_name="env_steps",
+                  rate_key="steps_per_s", per_chunk=25_600, total=96_000_000,
+                  chunk=None, summarize=None, validate=None, score_keys=("success",),
+                  best_keys=("success",))
+    text = wall_time_estimate(stage, chunk=3, seconds=[2.0, 2.0], members=1)
+    assert text.startswith("train org: 12,800 steps/s over chunks 2-3 (compile excluded): "
+                           "the remaining 3747 of 3750 chunks take about 2.1 h")
+    assert "(a whole run: 2.1 h;" in text
+    three = wall_time_estimate(stage, chunk=3, seconds=[2.0, 2.0], members=3)
+    assert "38,400 steps/s (3 runs together)" in three
+
+
+# ------------------------------------------------------------------ mixed precision
+
+def _chunk_pair(tiny_dir, tmp_path, model="baseline"):
+    """One runner; a chunk of the float32 and the bfloat16 program from it."""
+    from orgnav_jax.models import build_model
+    from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
+    sys.path.insert(0, str(WORKER.parent))
+    from scale_worker import small_cfg
+    train = scenes_mod.load(tiny_dir).split_view("train").to_device()
+    out = {}
+    for dtype in ("float32", "bfloat16"):
+        cfg = small_cfg(tiny_dir, tmp_path, dtype=dtype, model=model)
+        model_ = build_model(cfg, train)
+        opt = make_optimizer(cfg)
+        runner = init_runner(cfg, model_, opt, train, jax.random.PRNGKey(0))
+        chunk = make_train_chunk(cfg, model_, opt)
+        hlo = chunk.lower(runner, train).as_text()
+        after, metrics = chunk(runner, train)
+        out[dtype] = (runner, after, metrics, hlo)
+    return out
+
+
+@pytest.mark.parametrize("model", ["baseline", "org"])
+def test_bfloat16_computes_in_bf16_with_float32_parameters(tmp_path, tiny_dir, model):
+    """--dtype bfloat16: the matmuls take bf16 operands, parameters and Adam moments stay
+    float32, the parameters start equal (same init) and the first chunk's losses agree
+    with float32's to bf16 precision; the update changes every parameter array."""
+    out = _chunk_pair(tiny_dir, tmp_path, model)
+    r32, a32, m32, hlo32 = out["float32"]
+    r16, a16, m16, hlo16 = out["bfloat16"]
+    assert "bf16" in hlo16 and "bf16" not in hlo32
+    for x, y in zip(jax.tree_util.tree_leaves(r32.params), jax.tree_util.tree_leaves(r16.params)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    for tree in (a16.params, a16.opt_state):
+        assert {str(x.dtype) for x in jax.tree_util.tree_leaves(tree)} <= {"float32", "int32"}
+    assert bool(m16["loss_finite"])
+    for k in ("loss", "entropy", "value_loss"):
+        assert float(m16[k]) == pytest.approx(float(m32[k]), rel=0.05, abs=2e-3), k
+    changed = [not np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(
+        jax.tree_util.tree_leaves(r16.params), jax.tree_util.tree_leaves(a16.params))]
+    assert all(changed)
+
+
+@pytest.mark.slow
+def test_bfloat16_training_beats_random_on_the_val_rooms(tmp_path, tiny_dir):
+    """~1-2 minutes: the baseline trained in bf16 for 100 k env steps on the tiny training
+    rooms succeeds at least twice as often as random on the unseen val rooms."""
+    from orgnav_jax import episodes as E
+    from orgnav_jax import evaluation
+    from orgnav_jax.training import loop
+    from orgnav_jax.training.config import get_config
+    from orgnav_jax.training.runs import load_run_policy
+    cfg = get_config("tiny", scenes_dir=tiny_dir, run_dir=str(tmp_path / "run"),
+                     total_env_steps=102_400, dtype="bfloat16")
+    loop.train(cfg, progress=False)
+    policy, params, _ = load_run_policy(tmp_path / "run", best=False)
+    val = scenes_mod.load(tiny_dir).split_view("val").to_device()
+    episodes = E.sample_episodes(val, seed=0, split="val")
+    trained = evaluation.evaluate(policy, params, val, episodes)["overall"]["success"]
+    rand = evaluation.evaluate(evaluation.random_policy(), None, val, episodes,
+                               seed=0)["overall"]["success"]
+    assert trained >= 2 * rand and trained > 0.05, (trained, rand)
+
+
+# ------------------------------------------------------------------ config fields
+
+def test_scale_out_config_fields_and_older_configs(tmp_path):
+    """devices and dtype are checked like every field; a version-3 config.json (before
+    them) reads as one device in float32, and --resume may change devices only."""
+    from orgnav_jax.training.config import get_config, load_config
+    from orgnav_jax.training.run_dir import config_differences, write_config
+    with pytest.raises(ValueError, match=r"config field 'dtype': 'float16', expected one of "
+                                         r"\['float32', 'bfloat16'\]"):
+        get_config("tiny", dtype="float16")
+    with pytest.raises(ValueError, match=r"'devices': -1, expected an integer devices >= 0 "
+                                         r"\(0: all local devices\)"):
+        get_config("tiny", devices=-1)
+    cfg = get_config("tiny", run_dir=str(tmp_path))
+    write_config(tmp_path, cfg)
+    doc = json.loads((tmp_path / "config.json").read_text())
+    assert doc["version"] == 4 and doc["devices"] == 0 and doc["dtype"] == "float32"
+    old = {k: v for k, v in doc.items() if k not in ("devices", "dtype")}
+    (tmp_path / "config.json").write_text(json.dumps(dict(old, version=3)))
+    assert load_config(tmp_path) == cfg
+    assert config_differences(cfg, dataclasses.replace(cfg, devices=2)) == []
+    assert config_differences(cfg, dataclasses.replace(cfg, dtype="bfloat16")) == \
+        ["dtype: 'float32' -> 'bfloat16'"]
