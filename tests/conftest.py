@@ -24,6 +24,14 @@ def tiny_scenes() -> scenes.SceneSet:
 
 
 @pytest.fixture(scope="session")
+def tiny_dir(tmp_path_factory, tiny_scenes) -> str:
+    """tiny_scenes saved once per session (read-only for tests: copy it to change it)."""
+    path = tmp_path_factory.mktemp("scenes") / "tiny"
+    scenes.save(tiny_scenes, path)
+    return str(path)
+
+
+@pytest.fixture(scope="session")
 def sample_rooms() -> dict[int, layout.Room]:
     """generate_room(0, fp) for a few floorplans of each room type."""
     return {fp: layout.generate_room(0, fp) for fp in SAMPLE_FLOORPLANS}

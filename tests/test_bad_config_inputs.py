@@ -145,13 +145,6 @@ def test_budget_notice_names_the_steps_run():
 # ------------------------------------------------------------------ fixtures
 
 @pytest.fixture(scope="module")
-def tiny_dir(tmp_path_factory, tiny_scenes):
-    path = tmp_path_factory.mktemp("scenes") / "tiny"
-    scenes_mod.save(tiny_scenes, path)
-    return str(path)
-
-
-@pytest.fixture(scope="module")
 def no_val_dir(tmp_path_factory, tiny_scenes):
     """The tiny scenes with their val rooms relabelled as train rooms."""
     split = np.asarray(tiny_scenes.split)

@@ -18,7 +18,6 @@ import jax
 import numpy as np
 import pytest
 
-from orgnav_jax import scenes as scenes_mod
 from orgnav_jax import train as train_cli
 from orgnav_jax.errors import run_cli
 from orgnav_jax.training import loop
@@ -26,13 +25,6 @@ from orgnav_jax.training.config import get_config, load_config
 from orgnav_jax.training.run_dir import LOCK_FILE, RunLock
 
 CHUNK = 16 * 8 * 2          # env steps per chunk of the runs below
-
-
-@pytest.fixture(scope="module")
-def tiny_dir(tmp_path_factory, tiny_scenes):
-    path = tmp_path_factory.mktemp("scenes") / "tiny"
-    scenes_mod.save(tiny_scenes, path)
-    return str(path)
 
 
 def options(tiny_dir, run_dir, **kw) -> dict:

@@ -62,13 +62,6 @@ def assert_close(a_path, b_path, rtol=1e-5, atol=1e-6):
 
 
 @pytest.fixture(scope="module")
-def tiny_dir(tmp_path_factory, tiny_scenes):
-    path = tmp_path_factory.mktemp("scenes") / "tiny"
-    scenes_mod.save(tiny_scenes, path)
-    return str(path)
-
-
-@pytest.fixture(scope="module")
 def chunk_result(tmp_path_factory, tiny_dir):
     out = tmp_path_factory.mktemp("chunk")
     return out, run_worker("chunk", out, tiny_dir)

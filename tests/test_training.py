@@ -19,13 +19,6 @@ from orgnav_jax.training.losses import gae
 from orgnav_jax.training.runs import load_run_policy
 
 
-@pytest.fixture(scope="module")
-def tiny_dir(tmp_path_factory, tiny_scenes):
-    path = tmp_path_factory.mktemp("scenes") / "tiny"
-    scenes_mod.save(tiny_scenes, path)
-    return str(path)
-
-
 def small_cfg(tiny_dir, run_dir, **kw):
     """A few-second run on the tiny scenes: 4 chunks of 2 updates of 16 envs x 8 steps."""
     base = dict(scenes_dir=tiny_dir, num_envs=16, rollout_len=8, updates_per_chunk=2,
