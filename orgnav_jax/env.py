@@ -35,14 +35,14 @@ class EnvParams:
     """Static settings (hashable, so jit specializes on them)."""
     success_reward: float = struct.field(pytree_node=False, default=5.0)
     step_penalty: float = struct.field(pytree_node=False, default=-0.01)  # paper: -0.001
-    max_steps: tuple[int, ...] = struct.field(pytree_node=False, default=(30, 30, 30, 30))
+    step_caps: tuple[int, ...] = struct.field(pytree_node=False, default=(30, 30, 30, 30))
     min_start_dist: int = struct.field(pytree_node=False, default=1)
 
     @classmethod
     def evaluation(cls, **kw) -> EnvParams:
         """The paper's evaluation caps: 100 steps, 200 in living rooms."""
         caps = tuple(200 if t == "living_room" else 100 for t in ROOM_TYPES)
-        return cls(max_steps=caps, **kw)
+        return cls(step_caps=caps, **kw)
 
 
 @struct.dataclass
@@ -122,12 +122,12 @@ def start_episode(scene: jax.Array, start: jax.Array, target: jax.Array,
     """The EnvState at the start of a given episode (scene, LOCAL start state index in
     that room, as in an EpisodeSet, target); EnvState.state is the global flat index.
 
-    The visited set is a trail of at most max(params.max_steps) + 1 states: far smaller
+    The visited set is a trail of at most max(params.step_caps) + 1 states: far smaller
     than a bitset over S, and an any() over it is cheap.
     """
     check_episode(scene, start, target, scenes)
     state = (scenes.state_offset[scene] + start).astype(jnp.int32)
-    trail = jnp.full(max(params.max_steps) + 1, -1, jnp.int32).at[0].set(state)
+    trail = jnp.full(max(params.step_caps) + 1, -1, jnp.int32).at[0].set(state)
     return EnvState(
         scene=scene, state=state, target=target, steps=jnp.int32(0), path_len=jnp.int32(0),
         prev_action=jnp.int32(-1), last_failed=jnp.bool_(False), revisited=jnp.bool_(False),
@@ -177,8 +177,9 @@ def _transition(state: EnvState, action: jax.Array, scenes: SceneSet, params: En
     success = is_done & scenes.visible[state.state, state.target]
     failed = (nxt == state.state) & ~is_done
     steps = state.steps + 1
-    cap = jnp.asarray(params.max_steps, jnp.int32)[scenes.room_type[state.scene]]
-    done = is_done | (steps >= cap)
+    cap = jnp.asarray(params.step_caps, jnp.int32)[scenes.room_type[state.scene]]
+    truncated = (steps >= cap) & ~is_done
+    done = is_done | truncated
     new = state.replace(
         state=nxt, steps=steps, path_len=state.path_len + (~is_done).astype(jnp.int32),
         prev_action=action, last_failed=failed,
@@ -188,17 +189,21 @@ def _transition(state: EnvState, action: jax.Array, scenes: SceneSet, params: En
     reward = jnp.where(success, params.success_reward, params.step_penalty).astype(jnp.float32)
     info = {"success": success, "failed": failed, "path_len": new.path_len,
             "optimal_len": state.optimal_len, "steps": steps,
-            "revisited": new.revisited & ~is_done}
+            "revisited": new.revisited & ~is_done, "terminated": is_done,
+            "truncated": truncated}
     return new, reward, done, info
 
 
 def step_env(state: EnvState, action: jax.Array, scenes: SceneSet, params: EnvParams):
     """One action, no reset -> (obs, state, reward, done, info).
 
-    info: success (Done with the target visible), failed (the move left the agent in
-    place), revisited (a non-Done action led to a state visited before in the episode;
-    failed moves included), path_len, optimal_len, steps (of the finished or running
-    episode).
+    done = info["terminated"] | info["truncated"], never both (gymnax, xland-minigrid):
+    terminated: the agent said Done; truncated: another action reached the room type's
+    step cap. info also has success (Done with the target visible), failed (the move
+    left the agent in place), revisited (a non-Done action led to a state visited before
+    in the episode; failed moves included), path_len, optimal_len, steps (of the
+    finished or running episode). Training treats both ends alike (no bootstrap past
+    either), as the authors' release does.
     """
     new, reward, done, info = _transition(state, action, scenes, params)
     return observe(new, scenes), new, reward, done, info

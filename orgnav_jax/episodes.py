@@ -219,7 +219,7 @@ def load_episodes(path: str | os.PathLike, scenes: SceneSet) -> EpisodeSet:
     except UnicodeDecodeError:
         kind = "a Python pickle" if data[:1] == b"\x80" else "binary data"
         raise ValueError(f"episode file {path} is {kind}, not JSON text; {expected} (the "
-                         "authors' pickles load safely with orgnav_jax.scenes.offline."
+                         "authors' pickles load safely with orgnav_jax.offline_episodes."
                          "load_offline_episodes)") from None
     except json.JSONDecodeError as err:
         raise ValueError(f"episode file {path} is not valid JSON: {err}") from None

@@ -9,7 +9,7 @@ A Policy is a pair of pure, batched functions:
     act(policy_params, carry, obs, key, scenes, fresh)  -> (actions (B,) int32, carry)
 `obs` is a batched env.Observation; `fresh` (B,) bool is True on an episode's first step
 (recurrent policies reset their memory there). Every episode runs to Done or its cap
-(params.max_steps by room type) in one jitted lax.scan, vmapped over a batch.
+(params.step_caps by room type) in one jitted lax.scan, vmapped over a batch.
 
 Metrics per episode: success; SPL = success * L_opt / max(L, L_opt), where L counts the
 non-Done actions and L_opt the shortest such path at the start; "L>=5" keeps the
@@ -37,7 +37,7 @@ import numpy as np
 
 from orgnav_jax import env
 from orgnav_jax.compile_cache import compiled_once
-from orgnav_jax.constants import CATEGORIES, DONE, NUM_ACTIONS, ROOM_TYPES
+from orgnav_jax.constants import CATEGORIES, NUM_ACTIONS, ROOM_TYPES
 from orgnav_jax.episodes import EpisodeSet
 from orgnav_jax.scenes.sceneset import SceneSet
 from orgnav_jax.tree import where_rows
@@ -93,11 +93,10 @@ def _run_batch(policy: Policy, policy_params, scenes: SceneSet, scene, start, ta
         state, obs, pcarry, running, fresh, c = carry
         action, pcarry = policy.act(policy_params, pcarry, obs, key, scenes, fresh)
         obs2, state2, _, done, info = v_step(state, action, scenes, params)
-        said_done = state2.prev_action == DONE     # the action as the env applied it
         moved_back = info["revisited"] & ~info["failed"]   # env: non-Done, visited before
         c = {"success": c["success"] | (running & info["success"]),
-             "wrong_done": c["wrong_done"] | (running & said_done & ~info["success"]),
-             "timeout": c["timeout"] | (running & done & ~said_done),
+             "wrong_done": c["wrong_done"] | (running & info["terminated"] & ~info["success"]),
+             "timeout": c["timeout"] | (running & info["truncated"]),
              "revisits": c["revisits"] + (running & moved_back).astype(jnp.int32),
              "failed_moves": c["failed_moves"] + (running & info["failed"]).astype(jnp.int32)}
         record = None
@@ -121,13 +120,14 @@ def _run_batch(policy: Policy, policy_params, scenes: SceneSet, scene, start, ta
 def trace_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: EpisodeSet,
                    params: env.EnvParams, seed: int = 0) -> dict[str, np.ndarray]:
     """A few episodes step by step (one batch of the evaluation scan) -> numpy arrays:
-    the outcome per episode (E,) as run_episodes, and per step (E, T): state (the flat
-    state before the step), action, deadlock, running, and what policy.record keeps."""
+    the outcome per episode (E,) as run_episodes, and per step (E, T, ...): state (the
+    flat state before the step), action, deadlock, running, and what policy.record keeps
+    (its trailing axes too)."""
     arrays = [jnp.asarray(a) for a in (episodes.scene, episodes.start, episodes.target)]
     res = _run_batch(policy, policy_params, scenes, *arrays, jax.random.PRNGKey(seed),
-                     params, max(params.max_steps), trace=True)
+                     params, max(params.step_caps), trace=True)
     out = {k: np.asarray(v) for k, v in res.items() if k != "trace"}
-    out.update({k: np.asarray(v).T for k, v in res["trace"].items()})
+    out.update({k: np.swapaxes(np.asarray(v), 0, 1) for k, v in res["trace"].items()})
     return out
 
 
@@ -138,7 +138,7 @@ def run_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: Epis
     timeout (bool; exactly one is true per episode), path_len, steps, revisits,
     failed_moves, optimal_len, spl, room_type, target. Batches are padded to batch_size
     so the jitted scan compiles once."""
-    num_steps = max(params.max_steps)
+    num_steps = max(params.step_caps)
     n = len(episodes)
     if n == 0:
         raise ValueError("no episodes to evaluate (an empty episode set)")
@@ -153,7 +153,7 @@ def run_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: Epis
         res = _run_batch(policy, policy_params, scenes, *arrays, jax.random.fold_in(key, lo),
                          params, num_steps)
         if not bool(np.asarray(res["finished"]).all()):
-            raise RuntimeError("an episode outlived its cap; EnvParams.max_steps is inconsistent")
+            raise RuntimeError("an episode outlived its cap; EnvParams.step_caps is inconsistent")
         keep = min(batch_size, n - lo)
         for k in out:
             out[k].append(np.asarray(res[k])[:keep])

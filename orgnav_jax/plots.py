@@ -1,5 +1,5 @@
 """Pictures of trained runs: the ORG adjacency as a category heat map; learning curves;
-one episode from above.
+one episode from above; the TPN memory's attention over an episode.
 
     python -m orgnav_jax.plots episode RUN_DIR [--episode K] [--split test] [--out PNG]
 
@@ -7,6 +7,13 @@ draws the room of episode K of the split's seeded episode set (or of --episodes 
 from above: every position, where the target is in view, the agent's path from start to
 end (green star: success; red: wrong Done or timeout), its deadlock steps (x) and, for a
 TPN run, the steps where the test-time update changed the policy (orange circles).
+
+    python -m orgnav_jax.plots tpn-attention TPN_RUN_DIR [--episode K] [--step S] [--out PNG]
+
+draws the paper's Fig. 3 (left) for episode K of a TPN run: the weights the TPN's read
+put on each earlier step's memory slot, at every step (a heat map, darker = more weight,
+with the deadlock and update steps marked), and at step S (default: the first update)
+as bars labelled with the action taken there.
 
     python -m orgnav_jax.plots adjacency RUN_DIR [--out PNG] [--latest]
 
@@ -369,17 +376,18 @@ def plot_curves(run_dirs: Iterable[str | Path] | Mapping[str, Sequence[str | Pat
 
 def trace_run_episode(run_dir: str | Path, episode: int = 0, split: str = "test",
                       episodes_file: str | None = None, episode_seed: int = 0,
-                      per_room_type: int | None = None) -> dict:
+                      per_room_type: int | None = None, test_time: dict | None = None) -> dict:
     """One episode of a run's policy (a training run, or a TPN run with its test-time
-    updates), step by step -> {"trace": evaluation.trace_episodes of it, "scenes": the
-    split's SceneSet, "episode": the one-episode EpisodeSet, "name": the policy}.
+    updates; `test_time` overrides their fields, as evaluate's --when, --target, ...),
+    step by step -> {"trace": evaluation.trace_episodes of it, "scenes": the split's
+    SceneSet, "episode": the one-episode EpisodeSet, "name": the policy}.
     The episode is number `episode` of the split's seeded set (as evaluate samples it),
     or of `episodes_file`."""
     from orgnav_jax import api, env, evaluation
     from orgnav_jax.constants import EPISODES_PER_ROOM_TYPE
     from orgnav_jax.episodes import load_episodes, sample_episodes
     from orgnav_jax.scenes.cache import device_split
-    loaded = api.load_run(run_dir)
+    loaded = api.load_run(run_dir, **(test_time or {}))
     scenes = device_split(loaded.scene_preset, loaded.scene_seed, loaded.scenes_dir, split)
     episodes = (load_episodes(episodes_file, scenes) if episodes_file else
                 sample_episodes(scenes, per_room_type or EPISODES_PER_ROOM_TYPE,
@@ -441,6 +449,79 @@ def plot_episode(run_dir: str | Path, episode: int = 0, split: str = "test",
     return out
 
 
+def tpn_attention(run_dir: str | Path, episode: int = 0, split: str = "test", **kw) -> dict:
+    """Where the TPN's memory read looked during one episode of a TPN run ->
+    {"attention": (T, T) weights, row t = step t, column i = the memory slot of step i
+    (its key r_i, its value r_{i+1} and p_i; only i < t can be read, k of them weigh),
+    "updated": (T,) bool, the steps the test-time update took; "deadlock", "action"
+    (T,); "name", "scene", "target", "outcome"}, T = the steps the episode took."""
+    from orgnav_jax.errors import UserError
+    got = trace_run_episode(run_dir, episode, split, **kw)
+    tr = got["trace"]
+    if "tpn_attention" not in tr:
+        raise UserError(f"{run_dir}: a training run; TPN attention exists only for a TPN "
+                        "(stage 2) run (train --stage tpn)")
+    T = int(tr["running"][0].sum())
+    return {"attention": tr["tpn_attention"][0][:T, :T],
+            "updated": np.diff(tr["tpn_updates"][0], prepend=0)[:T] > 0,
+            "deadlock": tr["deadlock"][0][:T], "action": tr["action"][0][:T],
+            "name": got["name"], "scene": got["scenes"].scene_names[int(got["episode"].scene[0])],
+            "target": CATEGORIES[int(got["episode"].target[0])],
+            "outcome": next(k for k in ("success", "wrong_done", "timeout") if tr[k][0])}
+
+
+def plot_tpn_attention(run_dir: str | Path, episode: int = 0, split: str = "test",
+                       out: str | Path | None = None, step: int | None = None,
+                       **kw) -> tuple[Path, dict]:
+    """The paper's Fig. 3 (left) for one episode of a TPN run (tpn_attention): left, the
+    read's weights, step t (rows) over earlier steps i (columns), darker = more weight,
+    with the update and deadlock steps marked; right, the weights at one step (`step`,
+    default the first update, else the last step) over the earlier steps, labelled with
+    the action taken there -> (the PNG path, default RUN_DIR/tpn-attention-K.png, and
+    the tpn_attention dict)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from orgnav_jax.constants import ACTIONS
+    att = tpn_attention(run_dir, episode, split, **kw)
+    A, updated, T = att["attention"], att["updated"], len(att["updated"])
+    if step is None:
+        step = int(np.argmax(updated)) if updated.any() else T - 1
+    if not 0 <= step < T:
+        raise ValueError(f"--step {step}: the episode took steps 0...{T - 1}")
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 5.5),
+                                      gridspec_kw={"width_ratios": [1, 1.3]})
+    im = left.imshow(A, cmap="Greys", vmin=0, vmax=max(float(A.max()), 1e-6),
+                     origin="upper", interpolation="nearest")
+    fig.colorbar(im, ax=left, fraction=0.046, label="attention weight p")
+    for t in np.flatnonzero(att["deadlock"]):
+        left.scatter(-1.2, t, marker="x", c="tab:red", s=25, clip_on=False)
+    for t in np.flatnonzero(updated):
+        left.scatter(-2.4, t, marker="o", facecolors="none", edgecolors="tab:orange",
+                     s=30, clip_on=False)
+    left.axhline(step, c="tab:blue", lw=0.8, alpha=0.6)
+    left.set_xlim(-3, T - 0.5)
+    left.set_xlabel("earlier step i (memory slot)")
+    left.set_ylabel("step t   (x: deadlock, o: TPN update)")
+    left.set_title(f"{att['name']}: {att['scene']}, target {att['target']}, "
+                   f"{T} steps, {att['outcome']}", fontsize=9)
+    past = np.arange(step)
+    colours = ["tab:orange" if u else "tab:gray" for u in updated[:step]]
+    right.bar(past, A[step, :step], color=colours)
+    right.set_xticks(past)
+    right.set_xticklabels([f"{i}:{ACTIONS[a]}" for i, a in zip(past, att["action"][:step])],
+                          rotation=90, fontsize=6)
+    right.set_ylabel("attention weight p")
+    right.set_title(f"step {step}" + (" (TPN update)" if updated[step] else "") + (
+        f": weights over steps 0...{step - 1} and the action taken there (orange: update "
+        "steps)" if step else ": the first step, nothing to read yet"), fontsize=9)
+    out = Path(out) if out else Path(run_dir) / f"tpn-attention-{episode}.png"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return out, dict(att, step=step)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m orgnav_jax.plots", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -458,6 +539,20 @@ def main(argv=None) -> int:
     e.add_argument("--episodes", default=None, help="an episode file (default: the seeded "
                    "set evaluate samples)")
     e.add_argument("--out", default=None, help="PNG path (default RUN_DIR/episode-K.png)")
+    t = sub.add_parser("tpn-attention", help="the TPN memory's attention over an episode's "
+                                             "earlier steps (the paper's Fig. 3, left)")
+    t.add_argument("run_dir", help="a TPN (stage 2) run directory")
+    t.add_argument("--episode", type=int, default=0, help="index in the episode set")
+    t.add_argument("--split", choices=("val", "test"), default="test")
+    t.add_argument("--episodes", default=None, help="an episode file (default: the seeded "
+                   "set evaluate samples)")
+    t.add_argument("--step", type=int, default=None, help="the step whose weights the right "
+                   "panel shows (default: the first TPN update, else the last step)")
+    t.add_argument("--out", default=None,
+                   help="PNG path (default RUN_DIR/tpn-attention-K.png)")
+    from orgnav_jax.tpn.config import TEST_TIME_FIELDS, add_tpn_arguments
+    for sp in (e, t):           # a TPN run's test-time settings, as evaluate --tpn takes them
+        add_tpn_arguments(sp, TEST_TIME_FIELDS)
     c = sub.add_parser("curves", help="val learning curves of runs, mean and band over seeds")
     c.add_argument("runs", nargs="+", metavar="RUN_DIR",
                    help="training run directories (or ROW=RUN_DIR); NAME-s<seed> -> row NAME")
@@ -468,10 +563,21 @@ def main(argv=None) -> int:
     c.add_argument("--band", choices=sorted(BANDS), default="minmax",
                    help="shaded band: min-max over seeds (default) or mean +- std")
     args = ap.parse_args(argv)
+    if args.cmd in ("episode", "tpn-attention"):
+        from orgnav_jax.tpn.config import tpn_overrides_from_args
+        kw = dict(episodes_file=args.episodes, test_time=tpn_overrides_from_args(args))
     if args.cmd == "episode":
-        out = plot_episode(args.run_dir, args.episode, args.split, args.out,
-                           episodes_file=args.episodes)
+        out = plot_episode(args.run_dir, args.episode, args.split, args.out, **kw)
         print(f"wrote {out}")
+        return 0
+    if args.cmd == "tpn-attention":
+        out, att = plot_tpn_attention(args.run_dir, args.episode, args.split, args.out,
+                                      args.step, **kw)
+        w = att["attention"][att["step"]]
+        top = [f"{i} ({w[i]:.2f})" for i in np.argsort(-w)[:3] if w[i] > 0]
+        print(f"wrote {out}\n{int(att['updated'].sum())} TPN updates in "
+              f"{len(att['updated'])} steps; step {att['step']} reads most from steps "
+              + (", ".join(top) or "none (no earlier step)"))
         return 0
     if args.cmd == "curves":
         rows = group_runs(args.runs)

@@ -175,7 +175,7 @@ def finish(summary: dict, run_dir: str, args) -> dict:
 
 def run_tpn_stage(cfg, resume: bool, args) -> dict:
     announce(cfg, f"TPN run {cfg.run_dir}: base {cfg.base_dir}, {cfg.num_envs} episodes x "
-                  f"{cfg.max_steps} steps per update, {cfg.total_episodes:,} episodes, "
+                  f"{cfg.episode_cap} steps per update, {cfg.total_episodes:,} episodes, "
                   f"deadlock detector {cfg.deadlock}")
     return finish(api.train_tpn(cfg, resume=resume, progress=not args.quiet), cfg.run_dir,
                   args)

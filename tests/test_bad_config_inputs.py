@@ -39,8 +39,8 @@ NAN, INF = float("nan"), float("inf")
     ("total_env_steps", 0, "total_env_steps >= 1"),
     ("updates_per_chunk", 0, "updates_per_chunk >= 1"),
     ("keep_checkpoints", 0, "'keep_checkpoints': 0, expected an integer keep_checkpoints >= 1"),
-    ("max_steps", 0, "1 <= max_steps <= 2,147,483,646"),
-    ("max_steps", 2 ** 31, "1 <= max_steps <= 2,147,483,646"),
+    ("episode_cap", 0, "1 <= episode_cap <= 2,147,483,646"),
+    ("episode_cap", 2 ** 31, "1 <= episode_cap <= 2,147,483,646"),
     ("seed", -1, "'seed': -1, expected an integer 0 <= seed"),
     ("scene_seed", -1, "0 <= scene_seed"),
     ("lr", NAN, "'lr': nan, expected lr > 0, finite"),
@@ -75,7 +75,7 @@ def test_train_config_ranges(field, value, message):
 @pytest.mark.parametrize("fields", [
     dict(gamma=1.0, gae_lambda=0.0), dict(gae_lambda=1.0), dict(entropy_coef=0.0,
     value_coef=0.0, il_weight=0.0), dict(step_penalty=0.0, success_reward=-1.0),
-    dict(seed=0, scene_seed=0), dict(max_steps=1, keep_checkpoints=1), dict(lr=1, gamma=1),
+    dict(seed=0, scene_seed=0), dict(episode_cap=1, keep_checkpoints=1), dict(lr=1, gamma=1),
 ])
 def test_train_config_edges_are_valid(fields):
     get_config("small", **fields)
@@ -84,7 +84,7 @@ def test_train_config_edges_are_valid(fields):
 @pytest.mark.parametrize("field, value, message", [
     ("action_embed", 0, "action_embed >= 1"), ("mlp", 0, "mlp >= 1"),
     ("top_k", 0, "top_k >= 1"), ("signature_dim", 0, "signature_dim >= 1"),
-    ("max_steps", 0, "1 <= max_steps"), ("num_envs", 0, "num_envs >= 1"),
+    ("episode_cap", 0, "1 <= episode_cap"), ("num_envs", 0, "num_envs >= 1"),
     ("total_episodes", 0, "total_episodes >= 1"),
     ("updates_per_chunk", 0, "updates_per_chunk >= 1"),
     ("eval_every_chunks", 0, "'eval_every_chunks': 0, expected an integer "
@@ -113,7 +113,7 @@ def test_tpn_config_edges_are_valid():
     """tpn_lr 0 (the base alone), reset_every 0 (reset at episode starts only) and the
     cosine threshold's ends are meaningful."""
     get_tpn_config(tpn_lr=0.0, reset_every=0, cosine_threshold=-1.0)
-    get_tpn_config(cosine_threshold=1.0, max_steps=1, top_k=1)
+    get_tpn_config(cosine_threshold=1.0, episode_cap=1, top_k=1)
 
 
 def test_every_numeric_field_has_a_range():
@@ -127,6 +127,33 @@ def test_every_numeric_field_has_a_range():
 
 
 # ------------------------------------------------------------------ budget rounding
+
+@pytest.mark.parametrize("version", [2, 3, 4])
+def test_configs_before_version_5_read_max_steps_as_episode_cap(tmp_path, version):
+    from orgnav_jax.tpn.config import load_tpn_config
+    from orgnav_jax.training.config import CONFIG_VERSION, load_config
+    for stage, cfg, load in (("nav", get_config("tiny", episode_cap=17), load_config),
+                             ("tpn", get_tpn_config(episode_cap=23), load_tpn_config)):
+        doc = dataclasses.asdict(cfg)
+        doc["max_steps"] = doc.pop("episode_cap")
+        run = tmp_path / stage
+        run.mkdir()
+        (run / "config.json").write_text(json.dumps({"version": version, "stage": stage,
+                                                     **doc}))
+        assert load(run).episode_cap == cfg.episode_cap
+        assert json.loads(cfg.to_json())["version"] == CONFIG_VERSION == 5
+        assert "max_steps" not in json.loads(cfg.to_json())
+        doc["version"] = 5               # a version-5 config with the old name is refused
+        (run / "config.json").write_text(json.dumps({"stage": stage, **doc}))
+        with pytest.raises(ValueError, match=r"unknown config field\(s\) \['max_steps'\]"):
+            load(run)
+
+
+def test_max_steps_is_the_old_name_of_the_episode_cap_flag():
+    from orgnav_jax.training.config import overrides_from_args
+    args = train_cli.parser().parse_args(["--max-steps", "12"])
+    assert overrides_from_args(args)["episode_cap"] == 12
+
 
 def test_budget_notice_names_the_steps_run():
     cfg = get_config("tiny", total_env_steps=10)
@@ -173,15 +200,15 @@ def snapshot(root):
 
 # ------------------------------------------------------------------ memory estimate
 
-def test_memory_estimate_passes_the_default_and_fails_max_steps_1e9(tiny_scenes):
+def test_memory_estimate_passes_the_default_and_fails_episode_cap_1e9(tiny_scenes):
     small = get_config("small")
     parts = memory.chunk_memory_bytes(small, tiny_scenes)
     assert 50e6 < sum(parts.values()) < 2e9, parts
     memory.check_memory(small, tiny_scenes)             # fits on any machine that tests
-    huge = get_config("small", max_steps=1_000_000_000)
+    huge = get_config("small", episode_cap=1_000_000_000)
     assert memory.chunk_memory_bytes(huge, tiny_scenes)["trail"] > 256e9
     with pytest.raises(ValueError, match=r"training needs ~768 GB of memory per chunk "
-                                         r"\(max_steps 1000000000 x num_envs 64: ~768 GB\)"):
+                                         r"\(episode_cap 1000000000 x num_envs 64: ~768 GB\)"):
         memory.check_memory(huge, tiny_scenes)
 
 
@@ -197,14 +224,14 @@ def test_memory_check_notes_a_near_miss_and_fails_beyond_twice(tiny_scenes, caps
         memory.check_memory(cfg, tiny_scenes, available=need // 3, where="test memory")
 
 
-def test_tpn_memory_grows_with_max_steps_squared(tiny_scenes):
+def test_tpn_memory_grows_with_episode_cap_squared(tiny_scenes):
     nav = get_config("small")
-    short = memory.tpn_memory_bytes(get_tpn_config(max_steps=1000), nav, tiny_scenes)
-    long = memory.tpn_memory_bytes(get_tpn_config(max_steps=2000), nav, tiny_scenes)
+    short = memory.tpn_memory_bytes(get_tpn_config(episode_cap=1000), nav, tiny_scenes)
+    long = memory.tpn_memory_bytes(get_tpn_config(episode_cap=2000), nav, tiny_scenes)
     assert long["attention"] == 4 * short["attention"]
     memory.check_tpn_memory(get_tpn_config(), nav, tiny_scenes)
-    with pytest.raises(ValueError, match=r"TPN stage 2 needs .*max_steps 100000\^2"):
-        memory.check_tpn_memory(get_tpn_config(max_steps=100_000), nav, tiny_scenes)
+    with pytest.raises(ValueError, match=r"TPN stage 2 needs .*episode_cap 100000\^2"):
+        memory.check_tpn_memory(get_tpn_config(episode_cap=100_000), nav, tiny_scenes)
 
 
 # ------------------------------------------------------------------ train CLI
@@ -219,7 +246,7 @@ TRAIN_CASES = [
     (["--lr", "-1"], "config field 'lr': -1.0, expected lr > 0, finite"),
     (["--gamma", "2"], "config field 'gamma': 2.0, expected 0 < gamma <= 1"),
     (["--keep-checkpoints", "0"], "'keep_checkpoints': 0"),
-    (["--max-steps", "1000000000"], "training needs ~768 GB of memory per chunk (max_steps "
+    (["--episode-cap", "1000000000"], "training needs ~768 GB of memory per chunk (episode_cap "
                                     "1000000000 x num_envs 64: ~768 GB); this machine has"),
 ]
 
@@ -280,7 +307,7 @@ def test_tpn_cli_rejects_bad_configs_before_writing(tmp_path, base_run, cli_erro
                           (["--lr", "nan"], "TPN config field 'lr': nan"),
                           (["--tpn-lr", "-1"], "'tpn_lr': -1.0, expected tpn_lr >= 0"),
                           (["--keep-checkpoints", "0"], "'keep_checkpoints': 0"),
-                          (["--max-steps", "100000"], "TPN stage 2 needs ~")):
+                          (["--episode-cap", "100000"], "TPN stage 2 needs ~")):
         line = cli_error(train_cli.main, ["--stage", "tpn", "--base", base_run,
                                           "--run-dir", run_dir, *argv])
         assert message in line, line

@@ -54,13 +54,28 @@ def test_failed_move_and_revisit_are_deadlocks(train):
 
 
 def test_episode_ends_at_the_cap(train):
-    params = env.EnvParams(max_steps=(3, 3, 3, 3))
+    params = env.EnvParams(step_caps=(3, 3, 3, 3))
     _, st = env.reset(jax.random.PRNGKey(1), train, params)
-    dones = []
+    ends = []
     for _ in range(3):
-        _, st, _, done, _ = env.step_env(st, K.ROTATE_LEFT, train, params)
-        dones.append(bool(done))
-    assert dones == [False, False, True]
+        _, st, _, done, info = env.step_env(st, K.ROTATE_LEFT, train, params)
+        ends.append((bool(done), bool(info["terminated"]), bool(info["truncated"])))
+    assert ends == [(False, False, False)] * 2 + [(True, False, True)]   # cap: truncated
+
+
+def test_done_at_the_cap_is_terminated_not_truncated(train):
+    params = env.EnvParams(step_caps=(3, 3, 3, 3))
+    _, st = env.reset(jax.random.PRNGKey(1), train, params)
+    for action in (K.ROTATE_LEFT, K.DONE):
+        _, st2, _, done, info = env.step_env(st, action, train, params)
+        assert (bool(done), bool(info["terminated"]), bool(info["truncated"])) == \
+            ((False, False, False) if action != K.DONE else (True, True, False))
+        st = st2
+    _, st = env.reset(jax.random.PRNGKey(1), train, params)
+    for _ in range(2):
+        _, st, *_ = env.step_env(st, K.ROTATE_LEFT, train, params)
+    _, _, _, done, info = env.step_env(st, K.DONE, train, params)   # Done on the last step
+    assert bool(done) and bool(info["terminated"]) and not bool(info["truncated"])
 
 
 def test_expert_reaches_every_target_with_spl_one(train):

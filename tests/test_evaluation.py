@@ -144,7 +144,7 @@ def few_episodes(test_split):
 
 @pytest.fixture(scope="module")
 def caps(test_split, few_episodes):
-    return np.asarray(env.EnvParams.evaluation().max_steps)[few_episodes.room_type]
+    return np.asarray(env.EnvParams.evaluation().step_caps)[few_episodes.room_type]
 
 
 def _run(policy, split, episodes):

@@ -54,7 +54,7 @@ def _handmade_episode(scenes):
 def test_cause_and_state_steps_and_labels_on_a_handmade_episode(tiny_scenes):
     scenes = tiny_scenes.split_view("train")
     n, s, c = _handmade_episode(scenes)
-    params = env.EnvParams(max_steps=(30,) * 4)
+    params = env.EnvParams(step_caps=(30,) * 4)
     state = env.start_episode(n, s, c, scenes, params)
     actions = [MOVE_AHEAD] + [ROTATE_LEFT] * 8 + [DONE]
     deadlock, caused, failed, last_failed, expert, states = [], [], [], [], [], []
@@ -101,7 +101,7 @@ def test_replay_reproduces_the_rollout_with_and_without_dropout(tiny_scenes, dro
     from orgnav_jax.models import build_model
     from orgnav_jax.training.rollout import rollout
     from orgnav_jax.training.update import env_params, init_runner, make_optimizer
-    cfg = get_config("tiny", num_envs=8, rollout_len=24, max_steps=6, lstm_layers=2,
+    cfg = get_config("tiny", num_envs=8, rollout_len=24, episode_cap=6, lstm_layers=2,
                      dropout=dropout)
     train = tiny_scenes.split_view("train").to_device()
     model = build_model(cfg, train)
@@ -136,6 +136,7 @@ def test_version_2_runs_load_with_the_imitation_they_were_trained_with(tmp_path)
     doc = dataclasses.asdict(get_config("il"))
     for field in ("il_step", "il_norm"):
         doc.pop(field)
+    doc["max_steps"] = doc.pop("episode_cap")         # its name before version 5
     (tmp_path / "config.json").write_text(json.dumps({"version": 2, **doc}))
     cfg = load_config(tmp_path)
     assert (cfg.il, cfg.il_step, cfg.il_norm) == ("deadlock", "state", "masked_mean")

@@ -19,9 +19,8 @@ import pytest
 from orgnav_jax import constants as K
 from orgnav_jax.scenes import NO_ACTION, UNREACHABLE
 from orgnav_jax.scenes.keys import key_index, state_key
-from orgnav_jax.scenes.offline import (
-    OfflineFormatError, import_offline, load_offline_episodes,
-)
+from orgnav_jax.offline_episodes import load_offline_episodes
+from orgnav_jax.scenes.offline import OfflineFormatError, import_offline
 
 XS, ZS = (-0.50, -0.25, 0.00), (1.00, 1.25, 1.50)
 BLOCKED = {(-0.25, 1.25)}

@@ -37,7 +37,7 @@ def base_run(tmp_path_factory, tiny_scenes):
 
 
 def tpn_cfg(base_run, run_dir, **kw):
-    fields = dict(base_dir=base_run, num_envs=8, max_steps=16, total_episodes=8 * 2 * 3,
+    fields = dict(base_dir=base_run, num_envs=8, episode_cap=16, total_episodes=8 * 2 * 3,
                   updates_per_chunk=2, eval_every_chunks=1, eval_episodes_per_room_type=2,
                   checkpoint_every_chunks=1, run_dir=str(run_dir))
     return get_tpn_config(**{**fields, **kw})
@@ -142,7 +142,7 @@ def test_fast_weights_belong_to_one_episode_of_one_environment(loaded, tpn_run):
 
 def test_stage2_gradients_reach_the_tpn_parameters_only(loaded, base_run, tmp_path):
     model, params, nav_cfg, test = loaded
-    cfg = tpn_cfg(base_run, tmp_path / "t", max_steps=12)
+    cfg = tpn_cfg(base_run, tmp_path / "t", episode_cap=12)
     tpn = build_tpn(nav_cfg, cfg)
     tpn_params = init_tpn_params(tpn, nav_cfg, jax.random.PRNGKey(0))
 
@@ -159,7 +159,7 @@ def test_stage2_gradients_reach_the_tpn_parameters_only(loaded, base_run, tmp_pa
 
 def test_collect_marks_whole_episodes(loaded, base_run, tmp_path):
     model, params, nav_cfg, test = loaded
-    cfg = tpn_cfg(base_run, tmp_path / "t", max_steps=20)
+    cfg = tpn_cfg(base_run, tmp_path / "t", episode_cap=20)
     b = collect(model, params, cfg, test, jax.random.PRNGKey(2), 12)
     valid = np.asarray(b.valid)
     assert valid[:, 0].all()
@@ -184,7 +184,7 @@ def test_cli_trains_and_evaluates_with_tpn(base_run, tmp_path, capsys):
     from orgnav_jax import train as train_cli
     run_dir = tmp_path / "cli-tpn"
     summary = train_cli.main(["--stage", "tpn", "--base", base_run, "--run-dir", str(run_dir),
-                              "--num-envs", "8", "--max-steps", "16", "--total-episodes", "32",
+                              "--num-envs", "8", "--episode-cap", "16", "--total-episodes", "32",
                               "--updates-per-chunk", "2", "--eval-episodes-per-room-type", "2",
                               "--quiet", "--no-test"])
     assert load_tpn_config(run_dir).base_dir == base_run
@@ -256,3 +256,31 @@ def test_episode_traces_and_pictures_of_a_run_and_a_tpn_run(base_run, tpn_run, t
         assert plots.main(["episode", str(run), "--episode", "1", "--out", str(png)]) == 0
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
     assert np.all(np.diff(tr["tpn_updates"][0]) >= 0)        # TPN: a running count
+
+
+def test_tpn_attention_is_a_top_k_read_of_earlier_steps_and_is_drawn(base_run, tpn_run,
+                                                                        tmp_path, capsys,
+                                                                        cli_error):
+    from orgnav_jax import plots
+    top_k = load_tpn_config(tpn_run).top_k
+    # the briefly trained base says Done at once; random update targets on every step
+    # with a large rate make it act at random, so the episode runs for a while
+    att = plots.tpn_attention(tpn_run, 1, "test", per_room_type=5, test_time=dict(
+        when="all", target="random", tpn_lr=10.0))
+    A = att["attention"]
+    T = len(att["updated"])
+    assert A.shape == (T, T) and T >= 3
+    assert att["updated"].all()                     # when="all": an update on every step
+    assert np.all(A >= 0)
+    assert np.all(np.triu(A) == 0)                  # step t reads only steps i < t
+    np.testing.assert_allclose(A[1:].sum(1), 1.0, rtol=1e-5)   # a softmax from step 1 on
+    assert A[0].sum() == 0                          # nothing to read at the first step
+    assert np.all((A > 0).sum(1) <= top_k)          # at most k slots weigh
+    png = tmp_path / "att.png"
+    assert plots.main(["tpn-attention", tpn_run, "--episode", "1", "--step", "2",
+                       "--when", "all", "--target", "random", "--tpn-lr", "10",
+                       "--out", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
+    assert "step 2 reads most from steps" in capsys.readouterr().out
+    assert "only for a TPN" in cli_error(plots.main, ["tpn-attention", base_run])
+    assert "--step 100000" in cli_error(plots.main, ["tpn-attention", tpn_run, "--step", "100000"])

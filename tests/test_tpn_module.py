@@ -162,7 +162,7 @@ def run_incremental(model, params, h, p, mem, fresh=None):
     """Step through h (B, T, H), p (B, T, 6); fresh (B, T) resets rows -> logits, mem."""
     @jax.jit
     def step(h, p, fresh, mem):
-        logits, r, mem = tpn.tpn_step(model, params, h, tpn.memory_reset(mem, fresh))
+        logits, r, mem, _ = tpn.tpn_step(model, params, h, tpn.memory_reset(mem, fresh))
         return logits, tpn.memory_record(mem, r, p)
 
     fresh = np.zeros(h.shape[:2], bool) if fresh is None else fresh

@@ -14,6 +14,7 @@ from orgnav_jax import evaluation, scenes as scenes_mod
 from orgnav_jax import episodes as E
 from orgnav_jax.training import loop
 from orgnav_jax.training.checkpoints import RunCheckpoints
+from orgnav_jax.training.driver import NonFiniteLoss
 from orgnav_jax.training.config import get_config, load_config
 from orgnav_jax.training.losses import gae
 from orgnav_jax.training.runs import load_run_policy
@@ -114,7 +115,7 @@ def test_nan_loss_stops_with_a_clear_message_and_keeps_the_last_checkpoint(
     loop.cached_train_chunk.cache_clear()
     cfg = small_cfg(tiny_dir, tmp_path / "run")
     try:
-        with pytest.raises(loop.NonFiniteLoss, match="non-finite loss in chunk 3.*last good "
+        with pytest.raises(NonFiniteLoss, match="non-finite loss in chunk 3.*last good "
                                                      "checkpoint"):
             loop.train(cfg, progress=False)
     finally:

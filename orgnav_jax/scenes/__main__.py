@@ -18,7 +18,8 @@ import time
 
 from orgnav_jax.errors import run_cli
 from orgnav_jax.safe_write import check_output_dir
-from orgnav_jax.scenes.builder import FORMAT_VERSION, build
+from orgnav_jax.scenes.builder import build
+from orgnav_jax.scenes.sceneset import FORMAT_VERSION
 from orgnav_jax.scenes.layout import ROOM_SIZE_PROFILES, generate_room, render_ascii
 from orgnav_jax.scenes.offline import cli as offline_cli
 from orgnav_jax.scenes.presets import SCENE_PRESETS, get_preset

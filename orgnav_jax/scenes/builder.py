@@ -13,14 +13,13 @@ from orgnav_jax.constants import (
     category_index,
 )
 from orgnav_jax.scenes import detector, geometry, global_view
-from orgnav_jax.scenes.flat import EXPERT_CHUNK, flat_expert_tables  # noqa: F401 (re-export)
+from orgnav_jax.scenes.flat import flat_expert_tables
 from orgnav_jax.scenes.layout import Room, generate_room
 from orgnav_jax.scenes.presets import ScenePreset, get_preset
-from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet, storage_offsets
+from orgnav_jax.scenes.sceneset import (
+    FORMAT_NAME, FORMAT_VERSION, UNREACHABLE, SceneSet, storage_offsets,
+)
 
-FORMAT_NAME = "orgnav_jax.sceneset"
-FORMAT_VERSION = 2  # 2: flat (unpadded) state axis, state_offset, optional int8 scales;
-                    # 1: every room padded to the largest (read by storage.load, converted)
 STORE_DTYPE = np.float16
 
 

@@ -15,7 +15,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from orgnav_jax.scenes.builder import FORMAT_VERSION, build
+from orgnav_jax.scenes.builder import build
+from orgnav_jax.scenes.sceneset import FORMAT_VERSION
 from orgnav_jax.scenes.presets import get_preset
 from orgnav_jax.scenes.sceneset import SceneSet
 from orgnav_jax.scenes.storage import META_FILE, load, save

@@ -21,7 +21,6 @@ scale (`global_scale` (Dg,), `appearance_scale` (Da,): feature = int8 value * sc
 
 from __future__ import annotations
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,6 +28,9 @@ from flax import struct
 
 from orgnav_jax.constants import ROOM_TYPES, split_index
 
+FORMAT_NAME = "orgnav_jax.sceneset"   # meta.json "format" and SceneSet.info of saved sets
+FORMAT_VERSION = 2  # 2: flat (unpadded) state axis, state_offset, optional int8 scales;
+                    # 1: every room padded to the largest (read by storage.load, converted)
 UNREACHABLE = 32767   # dist sentinel (int16 max): no state where the category is visible can be reached
 NO_ACTION = -1        # expert_action sentinel for unreachable targets
 PER_STATE_FIELDS = ("next_state", "pose", "visible", "dist", "expert_action", "det_box",

@@ -1,6 +1,6 @@
 """Save and load a SceneSet: a directory with `meta.json` and one `.npy` per field.
 
-Format version 2 (scenes.builder.FORMAT_VERSION) stores the flat layout (sceneset.py:
+Format version 2 (sceneset.FORMAT_VERSION) stores the flat layout (sceneset.py:
 per-state arrays (T, ...) over all rooms, state_offset and state_count per scene, int8
 features with their scales when quantized). Version 1 sets (every room padded to the
 largest, with a state_valid mask) still load: they are converted in memory on every load
@@ -28,8 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from orgnav_jax.safe_write import check_output_dir
-from orgnav_jax.scenes.builder import FORMAT_NAME, FORMAT_VERSION
-from orgnav_jax.scenes.sceneset import SceneSet
+from orgnav_jax.scenes.sceneset import FORMAT_NAME, FORMAT_VERSION, SceneSet
 
 META_FILE = "meta.json"
 _OPTIONAL = ("appearance_proto", "appearance_basis", "global_basis", "global_scale",

@@ -14,8 +14,8 @@ from pathlib import Path
 from typing import Literal, get_args
 
 from orgnav_jax.training.config import (
-    CONFIG_VERSION, COUNT, INT32_MAX, POSITIVE, READABLE_VERSIONS, SEED, Range, _parse_bool,
-    budget_notice, check_ranges, check_types)
+    CONFIG_VERSION, COUNT, INT32_MAX, OLD_FLAGS, OLD_RENAMES, POSITIVE, READABLE_VERSIONS, SEED,
+    Range, _parse_bool, budget_notice, check_ranges, check_types)
 from orgnav_jax.training.run_dir import read_config
 
 Scope = Literal["actor", "trunk", "all"]     # parameters a test-time update changes
@@ -74,7 +74,7 @@ class TPNConfig:
     signature_dim: int = 64           # cosine: random projection width of the global map
     # stage 2: the frozen base acts in num_envs training episodes per update
     act: Act = "sample"               # sample | greedy (the base's actions in stage 2)
-    max_steps: int = 100              # stage-2 episode cap (test time: the eval caps)
+    episode_cap: int = 100            # stage-2 episode cap (test time: the eval caps)
     num_envs: int = 64
     lr: float = 3e-4
     max_grad_norm: float = 10.0
@@ -147,7 +147,7 @@ FIELD_RANGES: dict[str, Range] = {
                           "total_episodes", "updates_per_chunk", "eval_every_chunks",
                           "eval_episodes_per_room_type", "checkpoint_every_chunks",
                           "keep_checkpoints")},
-    "max_steps": Range(lo=1, hi=INT32_MAX - 1),
+    "episode_cap": Range(lo=1, hi=INT32_MAX - 1),
     "seed": SEED,
     "cosine_threshold": Range(lo=-1, hi=1),
     "lr": POSITIVE, "max_grad_norm": POSITIVE,
@@ -169,7 +169,7 @@ def get_tpn_config(**fields) -> TPNConfig:
 
 def load_tpn_config(run_dir: str | Path) -> TPNConfig:
     """The TPNConfig saved in a stage-2 run directory; clear errors otherwise."""
-    return read_config(run_dir, TPNConfig, "tpn", READABLE_VERSIONS)
+    return read_config(run_dir, TPNConfig, "tpn", READABLE_VERSIONS, renames=OLD_RENAMES)
 
 
 TEST_TIME_FIELDS = ("tpn_lr", "scope", "when", "target", "deadlock", "cosine_threshold",
@@ -185,7 +185,8 @@ def add_tpn_arguments(ap: argparse.ArgumentParser, fields=None) -> None:
             continue
         kind = {bool: _parse_bool, int: int, float: float}.get(type(f.default), str)
         flag = "base" if f.name == "base_dir" else f.name.replace("_", "-")
-        group.add_argument("--" + flag, dest="tpn__" + f.name, type=kind, default=None,
+        flags = ["--" + flag] + ([OLD_FLAGS[f.name]] if f.name in OLD_FLAGS else [])
+        group.add_argument(*flags, dest="tpn__" + f.name, type=kind, default=None,
                            metavar=type(f.default).__name__.upper())
 
 

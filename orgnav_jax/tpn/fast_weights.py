@@ -30,7 +30,6 @@ from __future__ import annotations
 
 
 import jax
-import jax.numpy as jnp
 from flax import traverse_util
 
 from orgnav_jax.compile_cache import compiled_once

@@ -1,7 +1,7 @@
 """Stage 2: train the TPN on deadlock steps of a frozen navigation model.
 
 Each update, the frozen base acts in `num_envs` fresh training episodes of up to
-`max_steps` steps (no auto-reset, so each row of the batch is one whole episode and the
+`episode_cap` steps (no auto-reset, so each row of the batch is one whole episode and the
 TPN's internal memory is exact); the TPN reads that episode's past steps and is trained
 with CE(TPN logits, expert action) on the deadlock steps. The base never changes, so the
 collected data do not depend on the TPN's parameters.
@@ -54,8 +54,8 @@ class TPNRunner:
 
 def collect(model, base_params, cfg: TPNConfig, scenes, key, num: int) -> EpisodeBatch:
     """The frozen base acts (sampled or greedy, cfg.act) in `num` random episodes of
-    `scenes` for cfg.max_steps steps; finished episodes stay frozen (valid False)."""
-    params = env.EnvParams(max_steps=(cfg.max_steps,) * 4)
+    `scenes` for cfg.episode_cap steps; finished episodes stay frozen (valid False)."""
+    params = env.EnvParams(step_caps=(cfg.episode_cap,) * 4)
     k_reset, k_act = jax.random.split(key)
     _, state = jax.vmap(env.reset, in_axes=(0, None, None))(
         jax.random.split(k_reset, num), scenes, params)
@@ -80,9 +80,9 @@ def collect(model, base_params, cfg: TPNConfig, scenes, key, num: int) -> Episod
         return (state, lstm, running & ~done, success, vision, jnp.zeros_like(fresh)), out
 
     init = (state, model.initial_carry(num), jnp.ones(num, bool), jnp.zeros(num, bool),
-            detector_init(cfg.memory, num, cfg.max_steps), jnp.ones(num, bool))
+            detector_init(cfg.memory, num, cfg.episode_cap), jnp.ones(num, bool))
     (_, _, _, success, _, _), (h, probs, valid, deadlock, expert) = jax.lax.scan(
-        body, init, jax.random.split(k_act, cfg.max_steps))
+        body, init, jax.random.split(k_act, cfg.episode_cap))
     batch_major = lambda x: jnp.swapaxes(x, 0, 1)
     return EpisodeBatch(batch_major(h), batch_major(probs), batch_major(valid),
                         batch_major(deadlock), batch_major(expert), success)

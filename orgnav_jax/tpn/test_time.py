@@ -53,10 +53,11 @@ class TPNCarry:
     """Per-environment state of the policy (leading axis B everywhere)."""
     lstm: Any           # the base model's LSTM carry
     fast: Any           # the episode's fast weights (dense copies or a LowRankState)
-    memory: Any         # models.tpn.TPNMemory (internal memory)
+    memory: Any         # models.tpn_net.TPNMemory (internal memory)
     vision: Any         # the deadlock detector's memory (None for "visited")
     updates: jax.Array  # (B,) int32 test-time updates in the running episode
     steps: jax.Array    # (B,) int32 index of the step in the running episode
+    attention: jax.Array  # (B, M) float: the TPN read's weight on each earlier step
 
 
 IMPLS = ("auto", "dense", "lowrank")
@@ -70,7 +71,7 @@ def build_tpn(nav_cfg, cfg: TPNNetwork) -> TPN:
 
 def update_slots(cfg: TestTime) -> int:
     """Updates an episode can take between two resets (one per step at most)."""
-    longest = max(EnvParams.evaluation().max_steps)
+    longest = max(EnvParams.evaluation().step_caps)
     return min(cfg.reset_every, longest) if cfg.reset_every > 0 else longest
 
 
@@ -92,11 +93,11 @@ def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float
     the navigation model's rate, used with cfg.tpn_train_mode only."""
     def init(batch, params):
         fw = fast_weights(model, cfg, params["base"], impl)
-        size = max(EnvParams.evaluation().max_steps)       # the longest test episode
+        size = max(EnvParams.evaluation().step_caps)       # the longest test episode
         zeros = jnp.zeros(batch, jnp.int32)
         return TPNCarry(model.initial_carry(batch), fw.init(batch, params["base"]),
                         memory_init(batch, size, tpn.hidden), detector_init(cfg, batch, size),
-                        zeros, zeros)
+                        zeros, zeros, jnp.zeros((batch, size)))
 
     def act(params, carry: TPNCarry, obs, key, scenes, fresh):
         fw = fast_weights(model, cfg, params["base"], impl)
@@ -110,7 +111,7 @@ def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float
                 jax.random.fold_in(key, 1), dropout, model.dropout_shape(B)))
 
         def decide(logits, h):
-            tpn_logits, r, memory = tpn.apply(params["tpn"], h,
+            tpn_logits, r, memory, attention = tpn.apply(params["tpn"], h,
                                               memory_reset(carry.memory, fresh),
                                               method=tpn.step_logits)
             deadlock, vision = detect(cfg, carry.vision, obs.deadlock, inputs.glob, fresh)
@@ -123,18 +124,20 @@ def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float
                 "tpn": lambda: jnp.argmax(tpn_logits, -1),
                 "random": lambda: jax.random.randint(key, fresh.shape, 0, NUM_ACTIONS)},
                 cfg.target, "TPN update target")()
-            return target, update, (update, r, memory, vision)
+            return target, update, (update, r, memory, vision, attention)
 
         # the model with the episode's fast weights; updating rows take one SGD step and
         # act with the updated weights
-        logits, lstm, fast, (update, r, memory, vision) = fw.step(
+        logits, lstm, fast, (update, r, memory, vision, attention) = fw.step(
             params["base"], fast, inputs, reset_carry(carry.lstm, fresh), decide, cfg.tpn_lr)
         memory = memory_record(memory, r, jax.nn.softmax(logits))
         updates = jnp.where(fresh, 0, carry.updates) + update.astype(jnp.int32)
         return jnp.argmax(logits, -1).astype(jnp.int32), TPNCarry(
-            lstm, fast, memory, vision, updates, steps)
+            lstm, fast, memory, vision, updates, steps, attention)
 
-    return Policy(name, init, act, record=lambda carry: {"tpn_updates": carry.updates})
+    # per step: updates so far, and where the TPN's read looked (slot i = step i -> i+1)
+    return Policy(name, init, act, record=lambda carry: {"tpn_updates": carry.updates,
+                                                         "tpn_attention": carry.attention})
 
 
 def load_tpn_policy(run_dir: str | Path, **test_time):

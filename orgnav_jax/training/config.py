@@ -15,9 +15,15 @@ import numbers
 from pathlib import Path
 from typing import Literal, get_args
 
-CONFIG_VERSION = 4   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step;
-                     # 4: devices, dtype (scale-out; same parameters and checkpoints)
-READABLE_VERSIONS = (2, 3, 4)   # configs and checkpoints this version reads
+CONFIG_VERSION = 5   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step;
+                     # 4: devices, dtype (scale-out; same parameters and checkpoints);
+                     # 5: max_steps renamed episode_cap (both stages)
+READABLE_VERSIONS = (2, 3, 4, 5)   # configs and checkpoints this version reads
+# Fields renamed since, old name -> new, for the configs of versions before 5 (both stages)
+RENAMED = {"max_steps": "episode_cap"}
+OLD_RENAMES = {v: RENAMED for v in (2, 3, 4)}
+# CLI flags kept under their old names too
+OLD_FLAGS = {"episode_cap": "--max-steps"}
 # Fields a version-2 config lacks, with the values those runs were trained with.
 V2_DEFAULTS = {"il_norm": "masked_mean", "il_step": "state"}
 # Fields a version-3 (or 2) config lacks, with the values those runs were trained with
@@ -147,7 +153,7 @@ class TrainConfig:
     # environment
     success_reward: float = 5.0
     step_penalty: float = -0.01
-    max_steps: int = 30               # training episode cap
+    episode_cap: int = 30             # training episodes end after this many steps
     # optimisation (synchronous A2C over num_envs environments)
     num_envs: int = 64
     rollout_len: int = 16
@@ -217,9 +223,9 @@ FIELD_RANGES: dict[str, Range] = {
                           "updates_per_chunk", "eval_every_chunks",
                           "eval_episodes_per_room_type", "checkpoint_every_chunks",
                           "keep_checkpoints")},
-    # the env counts steps in int32 and keeps a trail of max_steps + 1 states per env
+    # the env counts steps in int32 and keeps a trail of episode_cap + 1 states per env
     # (the memory check, training/memory.py, bounds it far lower)
-    "max_steps": Range(lo=1, hi=INT32_MAX - 1),
+    "episode_cap": Range(lo=1, hi=INT32_MAX - 1),
     "lr": POSITIVE, "adam_eps": POSITIVE, "max_grad_norm": POSITIVE,
     "gamma": Range(lo=0, hi=1, lo_open=True),
     "gae_lambda": Range(lo=0, hi=1),
@@ -307,7 +313,7 @@ def load_config(run_dir: str | Path) -> TrainConfig:
     """The TrainConfig saved in a training run directory (run_dir.read_config)."""
     from orgnav_jax.training.run_dir import read_config
     return read_config(run_dir, TrainConfig, "nav", READABLE_VERSIONS,
-                       {2: {**V2_DEFAULTS, **V3_DEFAULTS}, 3: V3_DEFAULTS})
+                       {2: {**V2_DEFAULTS, **V3_DEFAULTS}, 3: V3_DEFAULTS}, OLD_RENAMES)
 
 
 def _parse_bool(text: str) -> bool:
@@ -324,7 +330,9 @@ def add_config_arguments(ap: argparse.ArgumentParser) -> None:
     for f in dataclasses.fields(TrainConfig):
         kind = {int: int, float: float, bool: _parse_bool}.get(
             type(f.default), str)
-        group.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=kind,
+        flags = ["--" + f.name.replace("_", "-")] + ([OLD_FLAGS[f.name]] if f.name in OLD_FLAGS
+                                                     else [])
+        group.add_argument(*flags, dest=f.name, type=kind,
                            default=None, metavar=type(f.default).__name__.upper()
                            if f.default is not None else "STR")
 

@@ -30,8 +30,8 @@ from orgnav_jax.models import build_model
 from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.errors import UserError
 from orgnav_jax.training import scale
-from orgnav_jax.training.driver import (  # noqa: F401 (API)
-    NonFiniteLoss, Stage, run_population, run_stage)
+from orgnav_jax.training.driver import (
+    Stage, run_population, run_stage)
 from orgnav_jax.training.runs import model_policy, preflight, split_on_device
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 

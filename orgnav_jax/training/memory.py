@@ -5,13 +5,13 @@
     chunk_memory_bytes(cfg, scenes)      # -> {what: bytes} of one training chunk
 
 The estimates count the large arrays a chunk holds at once: the runner state in and out
-(parameters, Adam moments, each env's visited-state trail of max_steps + 1 states), the
+(parameters, Adam moments, each env's visited-state trail of episode_cap + 1 states), the
 rollout's trajectory (num_envs x rollout_len steps), the loss's activations over those
 steps and the scene arrays a run puts on the device (its train and val rooms only: the
 SceneSet is flat and memory-mapped, so the test rooms are never loaded). They are
 calibrated against XLA's own figure for the compiled chunk (memory_analysis;
 docs/training.md: within a factor 1.2-1.7, above it) and are meant to catch
-configurations that cannot fit at all (max_steps 1e9 asks for most of a terabyte), not
+configurations that cannot fit at all (episode_cap 1e9 asks for most of a terabyte), not
 to predict the peak to the byte: the check fails only when the estimate exceeds twice
 the available memory, and prints a note when it exceeds it.
 The process's fixed overhead (JAX, compiled code, ~1 GB on CPU) is not counted.
@@ -33,7 +33,7 @@ ERROR_FACTOR = 2.0     # fail when the estimate exceeds this many times the avai
 # det_box (C, 4), det_conf, target (C,), prev_action (A,) float32, deadlock; plus fresh,
 # action, reward, done, value, expert_action, last_failed, failed, caused)
 TRAJECTORY_STEP_BYTES = 8 + 4 * (4 * C + C + C + A) + 1 + 4 * 4 + 5
-# copies of the (num_envs, max_steps + 1) int32 trail a chunk holds at once: the runner's
+# copies of the (num_envs, episode_cap + 1) int32 trail a chunk holds at once: the runner's
 # in and out, and the scan's working copy (XLA fuses the auto-reset's fresh trail)
 TRAIL_COPIES = 3
 
@@ -96,7 +96,7 @@ def chunk_memory_bytes(cfg, scenes, params: int | None = None) -> dict[str, int]
         # params and Adam's two moments, in and out of the chunk (the gradient and update
         # are far smaller than the activations)
         "parameters": 4 * P * 6,
-        "trail": 4 * N * (cfg.max_steps + 1) * TRAIL_COPIES,
+        "trail": 4 * N * (cfg.episode_cap + 1) * TRAIL_COPIES,
         "trajectory": N * T * TRAJECTORY_STEP_BYTES,
         # forward activations of the loss over N x T steps, kept for the backward pass
         # (XLA reuses their buffers for the gradients), plus one rollout step
@@ -107,10 +107,10 @@ def chunk_memory_bytes(cfg, scenes, params: int | None = None) -> dict[str, int]
 
 def tpn_memory_bytes(cfg, nav_cfg, scenes, params: int | None = None) -> dict[str, int]:
     """Estimated bytes of one jitted stage-2 chunk, by what drives them: the base's
-    episodes (num_envs x max_steps steps: LSTM outputs, env trails), the TPN's activations
-    over them and its (max_steps x max_steps) causal attention per episode (forward and
+    episodes (num_envs x episode_cap steps: LSTM outputs, env trails), the TPN's activations
+    over them and its (episode_cap x episode_cap) causal attention per episode (forward and
     backward), the base's parameters and the scenes."""
-    N, T, H = cfg.num_envs, cfg.max_steps, nav_cfg.hidden
+    N, T, H = cfg.num_envs, cfg.episode_cap, nav_cfg.hidden
     k, E = min(cfg.top_k, T), cfg.action_embed
     sig = 4 * cfg.signature_dim if cfg.deadlock == "cosine" else 0
     P = param_count(nav_cfg, scenes) if params is None else params
@@ -154,15 +154,15 @@ def available_memory() -> tuple[int | None, str]:
 
 # what each part of an estimate scales with (config fields), for the error message
 NAV_DRIVERS = {"parameters": "the widths hidden {hidden}, fuse_channels {fuse_channels}",
-               "trail": "max_steps {max_steps} x num_envs {num_envs}",
+               "trail": "episode_cap {episode_cap} x num_envs {num_envs}",
                "trajectory": "num_envs {num_envs} x rollout_len {rollout_len}",
                "activations": "num_envs {num_envs} x rollout_len {rollout_len} x widths",
                "scenes": "the scene set"}
 TPN_DRIVERS = {"parameters": "the base model's widths",
-               "episodes": "num_envs {num_envs} x max_steps {max_steps}",
-               "activations": "num_envs {num_envs} x max_steps {max_steps} x mlp {mlp}",
-               "attention": "num_envs {num_envs} x max_steps {max_steps}^2",
-               "trail": "num_envs {num_envs} x max_steps {max_steps}",
+               "episodes": "num_envs {num_envs} x episode_cap {episode_cap}",
+               "activations": "num_envs {num_envs} x episode_cap {episode_cap} x mlp {mlp}",
+               "attention": "num_envs {num_envs} x episode_cap {episode_cap}^2",
+               "trail": "num_envs {num_envs} x episode_cap {episode_cap}",
                "scenes": "the scene set"}
 
 

@@ -46,10 +46,12 @@ STAGES = {"nav": "training", "tpn": "TPN (stage 2)"}   # the kinds of run, in wo
 
 
 def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int, ...],
-                upgrades: dict[int, dict] | None = None):
+                upgrades: dict[int, dict] | None = None,
+                renames: dict[int, dict[str, str]] | None = None):
     """config.json of a run directory -> cls(**fields).validate(), after checking that it
     is JSON, of this `stage`, of one of `versions` (upgrades[v]: the values of fields a
-    version-v config lacks) with known field names; one-line errors naming the file."""
+    version-v config lacks; renames[v]: old field name -> new) with known field names;
+    one-line errors naming the file."""
     path = Path(run_dir) / CONFIG_FILE
     if not path.exists():
         raise FileNotFoundError(f"{path} not found: {run_dir} is not a {STAGES[stage]} run "
@@ -68,6 +70,8 @@ def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int
     if version not in versions:
         raise ValueError(f"{path}: config version {version}, this orgnav_jax reads versions "
                          f"{list(versions)}")
+    renamed = (renames or {}).get(version, {})
+    doc = {renamed.get(k, k): v for k, v in doc.items()}
     doc = {**(upgrades or {}).get(version, {}), **doc}
     bad = sorted(set(doc) - {f.name for f in dataclasses.fields(cls)})
     if bad:

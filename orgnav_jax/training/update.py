@@ -26,7 +26,7 @@ from orgnav_jax.training.rollout import EpisodeStats, RunnerState, rollout
 
 def env_params(cfg: TrainConfig) -> env.EnvParams:
     return env.EnvParams(success_reward=cfg.success_reward, step_penalty=cfg.step_penalty,
-                         max_steps=(cfg.max_steps,) * 4)
+                         step_caps=(cfg.episode_cap,) * 4)
 
 
 def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:

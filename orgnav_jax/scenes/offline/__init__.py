@@ -1,22 +1,18 @@
 """The authors' offline AI2-THOR data format (see docs/offline.md):
-import FloorPlanN folders into a SceneSet, export any SceneSet to them, and read/write
-evaluation episodes in their JSON/pickle form.
+import FloorPlanN folders into a SceneSet and export any SceneSet to them. (Their
+evaluation episodes, JSON or pickle, are read and written by orgnav_jax.offline_episodes,
+beside orgnav_jax.episodes: episodes sit above scenes.)
 
     from orgnav_jax import scenes
     from orgnav_jax.scenes import offline
     s, report = offline.import_offline("Data/AI2thor_offline_data")
     scenes.save(s, "data/thor")                      # or offline.import_to(dir, out)
     offline.export_offline(scenes.build("tiny", 0), "out/offline")
-    episodes, skipped = offline.load_offline_episodes("kitchen_test_22.pkl", s)
 
 CLI: python -m orgnav_jax.scenes import --offline-dir DIR --out OUT
      python -m orgnav_jax.scenes export --preset tiny --out DIR
 """
 
-from orgnav_jax.scenes.offline.episodes_io import (
-    PlainUnpickler, load_offline_episodes, read_records, to_offline_records,
-    write_offline_episodes,
-)
 from orgnav_jax.scenes.offline.exporter import export_offline, object_ids
 from orgnav_jax.scenes.offline.features_io import detection_rows
 from orgnav_jax.scenes.offline.importer import (
@@ -26,8 +22,6 @@ from orgnav_jax.scenes.offline.reader import read_scene
 from orgnav_jax.scenes.offline.validate import OfflineFormatError
 
 __all__ = [
-    "import_offline", "import_to", "export_offline", "load_offline_episodes",
-    "write_offline_episodes", "read_records", "to_offline_records", "PlainUnpickler",
-    "OfflineFormatError", "read_scene", "scene_folders", "format_report", "object_ids",
-    "detection_rows",
+    "import_offline", "import_to", "export_offline", "OfflineFormatError", "read_scene",
+    "scene_folders", "format_report", "object_ids", "detection_rows",
 ]

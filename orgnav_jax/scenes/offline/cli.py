@@ -105,7 +105,7 @@ def _export(args) -> int:
 
     from orgnav_jax.episodes import sample_episodes
     from orgnav_jax.scenes.builder import build
-    from orgnav_jax.scenes.offline.episodes_io import write_offline_episodes
+    from orgnav_jax.offline_episodes import write_offline_episodes
     from orgnav_jax.scenes.offline.exporter import check_export_dir, export_offline
     from orgnav_jax.scenes.storage import load
     check_export_dir(args.out)  # before building: refuse a folder that is not ours

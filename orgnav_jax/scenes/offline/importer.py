@@ -25,7 +25,8 @@ from tqdm.auto import tqdm
 
 from orgnav_jax.constants import NUM_ACTIONS, NUM_CATEGORIES
 from orgnav_jax.safe_write import check_output_dir
-from orgnav_jax.scenes.builder import FORMAT_NAME, FORMAT_VERSION, STORE_DTYPE, valid_targets
+from orgnav_jax.scenes.builder import STORE_DTYPE, valid_targets
+from orgnav_jax.scenes.sceneset import FORMAT_NAME, FORMAT_VERSION
 from orgnav_jax.scenes.flat import flat_expert_tables
 from orgnav_jax.scenes.offline import files
 from orgnav_jax.scenes.offline.features_io import (
