@@ -129,6 +129,15 @@ def format_report(rep: dict) -> str:
     return "\n".join(lines)
 
 
+def save_png(fig, out: Path, dpi: int = 120) -> Path:
+    """Write a figure (its folder created, tight bounding box) and close it -> out."""
+    import matplotlib.pyplot as plt
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
 def plot_adjacency(A, path, title: str = "ORG adjacency A", mark_pairs: bool = True) -> Path:
     """Draw A (C, C) as a heat map with category names (rows: attending category i,
     columns: attended category j) and write a PNG to `path`. The colour scale is symmetric
@@ -158,11 +167,7 @@ def plot_adjacency(A, path, title: str = "ORG adjacency A", mark_pairs: bool = T
                  label="A_ij (scale from off-diagonal entries)")
     ax.set_title(title)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_png(fig, Path(path))
 
 
 def find_adjacency(variables) -> np.ndarray:
@@ -359,10 +364,7 @@ def plot_curves(run_dirs: Iterable[str | Path] | Mapping[str, Sequence[str | Pat
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    save_png(fig, Path(out), dpi=110)
     if not quiet:
         for row, d in data.items():
             a = d[metrics[0]]
@@ -442,11 +444,7 @@ def plot_episode(run_dir: str | Path, episode: int = 0, split: str = "test",
     ax.set_title(f"{got['name']}: {scenes.scene_names[n]}, target {CATEGORIES[target]}, "
                  f"{int(run.sum())} steps", fontsize=9)
     ax.legend(fontsize=7, loc="best")
-    out = Path(out) if out else Path(run_dir) / f"episode-{episode}.png"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=120, bbox_inches="tight")
-    plt.close(fig)
-    return out
+    return save_png(fig, Path(out) if out else Path(run_dir) / f"episode-{episode}.png")
 
 
 def tpn_attention(run_dir: str | Path, episode: int = 0, split: str = "test", **kw) -> dict:
@@ -515,10 +513,7 @@ def plot_tpn_attention(run_dir: str | Path, episode: int = 0, split: str = "test
     right.set_title(f"step {step}" + (" (TPN update)" if updated[step] else "") + (
         f": weights over steps 0...{step - 1} and the action taken there (orange: update "
         "steps)" if step else ": the first step, nothing to read yet"), fontsize=9)
-    out = Path(out) if out else Path(run_dir) / f"tpn-attention-{episode}.png"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=120, bbox_inches="tight")
-    plt.close(fig)
+    out = save_png(fig, Path(out) if out else Path(run_dir) / f"tpn-attention-{episode}.png")
     return out, dict(att, step=step)
 
 
@@ -534,25 +529,19 @@ def main(argv=None) -> int:
     e = sub.add_parser("episode", help="top view of one episode of a run (path, target, "
                                        "deadlock steps, TPN updates)")
     e.add_argument("run_dir", help="a training run or a TPN (stage 2) run directory")
-    e.add_argument("--episode", type=int, default=0, help="index in the episode set")
-    e.add_argument("--split", choices=("val", "test"), default="test")
-    e.add_argument("--episodes", default=None, help="an episode file (default: the seeded "
-                   "set evaluate samples)")
-    e.add_argument("--out", default=None, help="PNG path (default RUN_DIR/episode-K.png)")
     t = sub.add_parser("tpn-attention", help="the TPN memory's attention over an episode's "
                                              "earlier steps (the paper's Fig. 3, left)")
     t.add_argument("run_dir", help="a TPN (stage 2) run directory")
-    t.add_argument("--episode", type=int, default=0, help="index in the episode set")
-    t.add_argument("--split", choices=("val", "test"), default="test")
-    t.add_argument("--episodes", default=None, help="an episode file (default: the seeded "
-                   "set evaluate samples)")
     t.add_argument("--step", type=int, default=None, help="the step whose weights the right "
                    "panel shows (default: the first TPN update, else the last step)")
-    t.add_argument("--out", default=None,
-                   help="PNG path (default RUN_DIR/tpn-attention-K.png)")
     from orgnav_jax.tpn.config import TEST_TIME_FIELDS, add_tpn_arguments
-    for sp in (e, t):           # a TPN run's test-time settings, as evaluate --tpn takes them
-        add_tpn_arguments(sp, TEST_TIME_FIELDS)
+    for sp, png in ((e, "episode-K.png"), (t, "tpn-attention-K.png")):
+        sp.add_argument("--episode", type=int, default=0, help="index in the episode set")
+        sp.add_argument("--split", choices=("val", "test"), default="test")
+        sp.add_argument("--episodes", default=None, help="an episode file (default: the "
+                        "seeded set evaluate samples)")
+        sp.add_argument("--out", default=None, help=f"PNG path (default RUN_DIR/{png})")
+        add_tpn_arguments(sp, TEST_TIME_FIELDS)   # a TPN run's test-time settings
     c = sub.add_parser("curves", help="val learning curves of runs, mean and band over seeds")
     c.add_argument("runs", nargs="+", metavar="RUN_DIR",
                    help="training run directories (or ROW=RUN_DIR); NAME-s<seed> -> row NAME")

@@ -1,7 +1,7 @@
 """Scale-out checks run in a subprocess (tests/test_scale_out.py): the forced host
 device count must be set before jax is imported, which pytest's process has done.
 
-    python tests/scale_worker.py TASK OUT_DIR SCENES_DIR [ARGS...]
+    python tests/scale_worker.py TASK|all OUT_DIR SCENES_DIR [ARGS...]
 
 Each task writes what the test compares under OUT_DIR (npz of the final runners' leaves,
 result.json) and exits 0; the test asserts on them.
@@ -122,5 +122,8 @@ TASKS = {"chunk": task_chunk, "runs": task_runs, "seeds": task_seeds}
 
 if __name__ == "__main__":
     task, out, scenes_dir, *rest = sys.argv[1:]
-    os.makedirs(out, exist_ok=True)
-    TASKS[task](out, scenes_dir, *rest)
+    # "all": every task in this one process (one start, shared compiles), each in OUT/TASK
+    for name in (TASKS if task == "all" else [task]):
+        where = os.path.join(out, name) if task == "all" else out
+        os.makedirs(where, exist_ok=True)
+        TASKS[name](where, scenes_dir, *rest)
