@@ -203,7 +203,7 @@ def step_env(state: EnvState, action: jax.Array, scenes: SceneSet, params: EnvPa
     left the agent in place), revisited (a non-Done action led to a state visited before
     in the episode; failed moves included), path_len, optimal_len, steps (of the
     finished or running episode). Training treats both ends alike (no bootstrap past
-    either), as the authors' release does.
+    either); the loss does not look at which.
     """
     new, reward, done, info = _transition(state, action, scenes, params)
     return observe(new, scenes), new, reward, done, info

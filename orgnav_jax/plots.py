@@ -487,7 +487,7 @@ def plot_tpn_attention(run_dir: str | Path, episode: int = 0, split: str = "test
         step = int(np.argmax(updated)) if updated.any() else T - 1
     if not 0 <= step < T:
         raise ValueError(f"--step {step}: the episode took steps 0...{T - 1}")
-    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 5.5),
+    fig, (left, right) = plt.subplots(1, 2, figsize=(13, 5.5), layout="constrained",
                                       gridspec_kw={"width_ratios": [1, 1.3]})
     im = left.imshow(A, cmap="Greys", vmin=0, vmax=max(float(A.max()), 1e-6),
                      origin="upper", interpolation="nearest")
@@ -511,8 +511,8 @@ def plot_tpn_attention(run_dir: str | Path, episode: int = 0, split: str = "test
                           rotation=90, fontsize=6)
     right.set_ylabel("attention weight p")
     right.set_title(f"step {step}" + (" (TPN update)" if updated[step] else "") + (
-        f": weights over steps 0...{step - 1} and the action taken there (orange: update "
-        "steps)" if step else ": the first step, nothing to read yet"), fontsize=9)
+        f": weights on steps 0...{step - 1}, action taken there (orange: updates)"
+        if step else ": the first step, nothing to read yet"), fontsize=9)
     out = save_png(fig, Path(out) if out else Path(run_dir) / f"tpn-attention-{episode}.png")
     return out, dict(att, step=step)
 
