@@ -73,6 +73,20 @@ def test_topk_selection():
     assert not np.allclose(topk(q, k, v_low, valid, 3), out2, atol=1e-3)
 
 
+def test_attention_map_spreads_the_read_over_the_slots():
+    """The dense map of a top-k read: the same weights as the attended values use, 0 on
+    the slots not read and on padding."""
+    q, k, v = rnd(7, 3, 8), rnd(8, 3, 12, 8), rnd(9, 3, 12, 5)
+    valid = np.arange(12)[None] < np.array([[12], [5], [0]])
+    read = tpn.topk_weights(jnp.asarray(q), jnp.asarray(k), jnp.asarray(valid), 4)
+    A = np.asarray(tpn.attention_map(read, 12))
+    assert A.shape == (3, 12) and np.all(A[~valid] == 0)
+    assert np.all((A > 0).sum(1) == [4, 4, 0])
+    np.testing.assert_allclose(A.sum(1), [1, 1, 0], atol=ATOL)
+    np.testing.assert_allclose(np.einsum("bm,bmv->bv", A, v),
+                               topk(q, k, v, valid, 4), atol=ATOL)
+
+
 def test_topk_leading_dims_match_rows():
     q, k, v = rnd(0, 2, 3, 5), rnd(1, 2, 3, 6, 5), rnd(2, 2, 3, 6, 4)
     valid = np.random.default_rng(4).random((2, 3, 6)) < 0.6

@@ -83,15 +83,13 @@ class TPN(nn.Module):
 
     def read_logits(self, r, keys, next_r, probs, valid):
         """r (B, H), keys (B, M, H), next_r (B, M, H), probs (B, M, 6), valid (B, M)
-        -> (logits (B, 6), attention (B, M): the read's weight on each slot, 0 outside
-        the top k). Values are gathered for the top-k slots only (the same read as
+        -> (logits (B, 6), read = (weights (B, k), slots (B, k)): the top-k slots read and
+        their weights). Values are gathered for the top-k slots only (the same read as
         topk_attention over all M values, without materializing them)."""
         w, idx = topk_weights(r, keys, valid, self.top_k)                  # (B, k)
         pick = lambda buf: jnp.take_along_axis(buf, idx[..., None], axis=-2)
         values = jnp.concatenate([pick(next_r), self.prob_embed(pick(probs))], axis=-1)
-        attention = jnp.zeros(valid.shape, w.dtype).at[
-            jnp.arange(w.shape[0])[:, None], idx].add(w)
-        return self._head(r, jnp.einsum("bk,bkv->bv", w, values)), attention
+        return self._head(r, jnp.einsum("bk,bkv->bv", w, values)), (w, idx)
 
     def __call__(self, h, probs, valid):
         """Whole episodes: h (B, T, H), probs (B, T, 6), valid (B, T) -> logits (B, T, 6).
@@ -109,14 +107,20 @@ class TPN(nn.Module):
 
     def step_logits(self, h, mem: "TPNMemory"):
         """One test-time step: h (B, H) -> (logits (B, 6), r (B, H), mem with the slot that
-        r completes, attention (B, M): the weight the read put on each slot, i.e. on each
-        earlier step of the episode; the paper's Fig. 3 left). Afterwards call
-        memory_record(mem, r, policy probs)."""
+        r completes, read: the top-k slots read and their weights, see read_logits;
+        attention_map spreads it over the memory, i.e. over the episode's earlier steps:
+        the paper's Fig. 3 left). Afterwards call memory_record(mem, r, policy probs)."""
         r = self.represent(h)
         mem = memory_observe(mem, r)
-        logits, attention = self.read_logits(r, mem.keys, mem.next_r, mem.probs,
-                                             memory_valid(mem))
-        return logits, r, mem, attention
+        logits, read = self.read_logits(r, mem.keys, mem.next_r, mem.probs, memory_valid(mem))
+        return logits, r, mem, read
+
+
+def attention_map(read, size: int) -> jax.Array:
+    """read = (weights (B, k), slots (B, k)) -> (B, size): each slot's weight, 0 for the
+    slots not read."""
+    w, idx = read
+    return jnp.zeros((w.shape[0], size), w.dtype).at[jnp.arange(w.shape[0])[:, None], idx].add(w)
 
 
 @struct.dataclass
@@ -171,5 +175,5 @@ def memory_valid(mem: TPNMemory) -> jax.Array:
 
 
 def tpn_step(model: TPN, params, h: jax.Array, mem: TPNMemory):
-    """Pure form of TPN.step_logits: -> (logits (B, 6), r (B, H), mem, attention (B, M))."""
+    """Pure form of TPN.step_logits: -> (logits (B, 6), r (B, H), mem, read)."""
     return model.apply(params, h, mem, method=TPN.step_logits)

@@ -40,7 +40,8 @@ from orgnav_jax.env import EnvParams
 from orgnav_jax.errors import choose
 from orgnav_jax.evaluation import Policy
 from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
-from orgnav_jax.models.tpn_net import TPN, memory_init, memory_record, memory_reset
+from orgnav_jax.models.tpn_net import (
+    TPN, attention_map, memory_init, memory_record, memory_reset)
 from orgnav_jax.tpn.config import (
     TestTime, TPNConfig, TPNNetwork, get_tpn_config, load_tpn_config)
 from orgnav_jax.tpn.deadlock import detect, detector_init
@@ -57,7 +58,7 @@ class TPNCarry:
     vision: Any         # the deadlock detector's memory (None for "visited")
     updates: jax.Array  # (B,) int32 test-time updates in the running episode
     steps: jax.Array    # (B,) int32 index of the step in the running episode
-    attention: jax.Array  # (B, M) float: the TPN read's weight on each earlier step
+    read: Any           # ((B, k) weights, (B, k) slots): the TPN's last memory read
 
 
 IMPLS = ("auto", "dense", "lowrank")
@@ -69,9 +70,14 @@ def build_tpn(nav_cfg, cfg: TPNNetwork) -> TPN:
                top_k=cfg.top_k)
 
 
+def longest_episode() -> int:
+    """Steps of the longest test episode (the evaluation caps): the TPN memory's slots."""
+    return max(EnvParams.evaluation().step_caps)
+
+
 def update_slots(cfg: TestTime) -> int:
     """Updates an episode can take between two resets (one per step at most)."""
-    longest = max(EnvParams.evaluation().step_caps)
+    longest = longest_episode()
     return min(cfg.reset_every, longest) if cfg.reset_every > 0 else longest
 
 
@@ -93,11 +99,12 @@ def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float
     the navigation model's rate, used with cfg.tpn_train_mode only."""
     def init(batch, params):
         fw = fast_weights(model, cfg, params["base"], impl)
-        size = max(EnvParams.evaluation().step_caps)       # the longest test episode
+        size = longest_episode()
+        k = min(tpn.top_k, size)
         zeros = jnp.zeros(batch, jnp.int32)
         return TPNCarry(model.initial_carry(batch), fw.init(batch, params["base"]),
                         memory_init(batch, size, tpn.hidden), detector_init(cfg, batch, size),
-                        zeros, zeros, jnp.zeros((batch, size)))
+                        zeros, zeros, (jnp.zeros((batch, k)), jnp.zeros((batch, k), jnp.int32)))
 
     def act(params, carry: TPNCarry, obs, key, scenes, fresh):
         fw = fast_weights(model, cfg, params["base"], impl)
@@ -111,7 +118,7 @@ def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float
                 jax.random.fold_in(key, 1), dropout, model.dropout_shape(B)))
 
         def decide(logits, h):
-            tpn_logits, r, memory, attention = tpn.apply(params["tpn"], h,
+            tpn_logits, r, memory, read = tpn.apply(params["tpn"], h,
                                               memory_reset(carry.memory, fresh),
                                               method=tpn.step_logits)
             deadlock, vision = detect(cfg, carry.vision, obs.deadlock, inputs.glob, fresh)
@@ -124,20 +131,24 @@ def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float
                 "tpn": lambda: jnp.argmax(tpn_logits, -1),
                 "random": lambda: jax.random.randint(key, fresh.shape, 0, NUM_ACTIONS)},
                 cfg.target, "TPN update target")()
-            return target, update, (update, r, memory, vision, attention)
+            return target, update, (update, r, memory, vision, read)
 
         # the model with the episode's fast weights; updating rows take one SGD step and
         # act with the updated weights
-        logits, lstm, fast, (update, r, memory, vision, attention) = fw.step(
+        logits, lstm, fast, (update, r, memory, vision, read) = fw.step(
             params["base"], fast, inputs, reset_carry(carry.lstm, fresh), decide, cfg.tpn_lr)
         memory = memory_record(memory, r, jax.nn.softmax(logits))
         updates = jnp.where(fresh, 0, carry.updates) + update.astype(jnp.int32)
         return jnp.argmax(logits, -1).astype(jnp.int32), TPNCarry(
-            lstm, fast, memory, vision, updates, steps, attention)
+            lstm, fast, memory, vision, updates, steps, read)
 
-    # per step: updates so far, and where the TPN's read looked (slot i = step i -> i+1)
-    return Policy(name, init, act, record=lambda carry: {"tpn_updates": carry.updates,
-                                                         "tpn_attention": carry.attention})
+    def record(carry: TPNCarry) -> dict:
+        """Per step (traces only): updates so far, and the read's weight on each memory
+        slot (B, M) (slot i: step i -> i+1 of the episode)."""
+        return {"tpn_updates": carry.updates,
+                "tpn_attention": attention_map(carry.read, longest_episode())}
+
+    return Policy(name, init, act, record=record)
 
 
 def load_tpn_policy(run_dir: str | Path, **test_time):
