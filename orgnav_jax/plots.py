@@ -382,7 +382,10 @@ def trace_run_episode(run_dir: str | Path, episode: int = 0, split: str = "test"
     """One episode of a run's policy (a training run, or a TPN run with its test-time
     updates; `test_time` overrides their fields, as evaluate's --when, --target, ...),
     step by step -> {"trace": evaluation.trace_episodes of it, "scenes": the split's
-    SceneSet, "episode": the one-episode EpisodeSet, "name": the policy}.
+    SceneSet, "episode": the one-episode EpisodeSet, "name": the policy, "outcome": one of
+    evaluation.OUTCOMES, "steps": the T steps the episode took, (T,) arrays of the trace
+    (state, action, deadlock, ...; a TPN run adds "updated", the steps the test-time
+    update took, and "tpn_attention" (T, T))}.
     The episode is number `episode` of the split's seeded set (as evaluate samples it),
     or of `episodes_file`."""
     from orgnav_jax import api, env, evaluation
@@ -400,7 +403,14 @@ def trace_run_episode(run_dir: str | Path, episode: int = 0, split: str = "test"
     one = episodes.subset(np.array([episode]))
     trace = evaluation.trace_episodes(loaded.policy, loaded.params, scenes, one,
                                       env.EnvParams.evaluation())
-    return {"trace": trace, "scenes": scenes, "episode": one, "name": loaded.policy.name}
+    T = int(trace["running"][0].sum())          # running: True on the steps taken
+    steps = {k: v[0][:T] for k, v in trace.items() if v.ndim >= 2}
+    if "tpn_updates" in steps:
+        steps["updated"] = np.diff(steps["tpn_updates"], prepend=0) > 0
+    if "tpn_attention" in steps:
+        steps["tpn_attention"] = steps["tpn_attention"][:, :T]
+    return {"trace": trace, "scenes": scenes, "episode": one, "name": loaded.policy.name,
+            "outcome": next(k for k in evaluation.OUTCOMES if trace[k][0]), "steps": steps}
 
 
 def plot_episode(run_dir: str | Path, episode: int = 0, split: str = "test",
@@ -412,16 +422,13 @@ def plot_episode(run_dir: str | Path, episode: int = 0, split: str = "test",
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     got = trace_run_episode(run_dir, episode, split, **kw)
-    tr, scenes, one = got["trace"], got["scenes"], got["episode"]
+    steps, scenes, one, outcome = got["steps"], got["scenes"], got["episode"], got["outcome"]
     n, target = int(one.scene[0]), int(one.target[0])
     rows = scenes.state_slice(n)
     pose = np.asarray(scenes.pose)
     room_xz = pose[rows, :2]
     seen = np.asarray(scenes.visible)[rows, target]
-    run = tr["running"][0]
-    states = tr["state"][0][run]
-    path = pose[states, :2]
-    outcome = next(k for k in ("success", "wrong_done", "timeout") if tr[k][0])
+    path = pose[steps["state"], :2]
     fig, ax = plt.subplots(figsize=(6, 6))
     ax.scatter(*np.unique(room_xz, axis=0).T, s=6, c="0.85", label="positions")
     ax.scatter(*np.unique(room_xz[seen], axis=0).T, s=14, c="tab:green",
@@ -430,19 +437,17 @@ def plot_episode(run_dir: str | Path, episode: int = 0, split: str = "test",
     ax.scatter(*path[0], marker="s", s=70, c="tab:blue", label="start", zorder=3)
     ax.scatter(*path[-1], marker="*", s=160, zorder=3,
                c="tab:green" if outcome == "success" else "tab:red", label=f"end: {outcome}")
-    dead = tr["deadlock"][0][run]
-    if dead.any():
-        ax.scatter(*path[dead].T, marker="x", s=50, c="tab:red", label="deadlock step")
-    if "tpn_updates" in tr:
-        updated = np.diff(tr["tpn_updates"][0], prepend=0)[run] > 0
-        if updated.any():
-            ax.scatter(*path[updated].T, s=90, facecolors="none", edgecolors="tab:orange",
-                       lw=1.5, label="TPN update")
+    if steps["deadlock"].any():
+        ax.scatter(*path[steps["deadlock"]].T, marker="x", s=50, c="tab:red",
+                   label="deadlock step")
+    if "updated" in steps and steps["updated"].any():
+        ax.scatter(*path[steps["updated"]].T, s=90, facecolors="none",
+                   edgecolors="tab:orange", lw=1.5, label="TPN update")
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("z (m)")
     ax.set_title(f"{got['name']}: {scenes.scene_names[n]}, target {CATEGORIES[target]}, "
-                 f"{int(run.sum())} steps", fontsize=9)
+                 f"{len(path)} steps", fontsize=9)
     ax.legend(fontsize=7, loc="best")
     return save_png(fig, Path(out) if out else Path(run_dir) / f"episode-{episode}.png")
 
@@ -455,17 +460,14 @@ def tpn_attention(run_dir: str | Path, episode: int = 0, split: str = "test", **
     (T,); "name", "scene", "target", "outcome"}, T = the steps the episode took."""
     from orgnav_jax.errors import UserError
     got = trace_run_episode(run_dir, episode, split, **kw)
-    tr = got["trace"]
-    if "tpn_attention" not in tr:
+    steps = got["steps"]
+    if "tpn_attention" not in steps:
         raise UserError(f"{run_dir}: a training run; TPN attention exists only for a TPN "
                         "(stage 2) run (train --stage tpn)")
-    T = int(tr["running"][0].sum())
-    return {"attention": tr["tpn_attention"][0][:T, :T],
-            "updated": np.diff(tr["tpn_updates"][0], prepend=0)[:T] > 0,
-            "deadlock": tr["deadlock"][0][:T], "action": tr["action"][0][:T],
-            "name": got["name"], "scene": got["scenes"].scene_names[int(got["episode"].scene[0])],
-            "target": CATEGORIES[int(got["episode"].target[0])],
-            "outcome": next(k for k in ("success", "wrong_done", "timeout") if tr[k][0])}
+    return {"attention": steps["tpn_attention"], "updated": steps["updated"],
+            "deadlock": steps["deadlock"], "action": steps["action"], "name": got["name"],
+            "scene": got["scenes"].scene_names[int(got["episode"].scene[0])],
+            "target": CATEGORIES[int(got["episode"].target[0])], "outcome": got["outcome"]}
 
 
 def plot_tpn_attention(run_dir: str | Path, episode: int = 0, split: str = "test",

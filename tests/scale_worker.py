@@ -20,16 +20,7 @@ if "--xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from orgnav_jax.training.config import get_config  # noqa: E402
-
-
-def small_cfg(scenes_dir, run_dir, **kw):
-    """tests/test_training.py's small_cfg: 4 chunks of 2 updates of 16 envs x 8 steps."""
-    base = dict(scenes_dir=scenes_dir, num_envs=16, rollout_len=8, updates_per_chunk=2,
-                total_env_steps=16 * 8 * 2 * 4, eval_every_chunks=2,
-                eval_episodes_per_room_type=4, checkpoint_every_chunks=1,
-                run_dir=str(run_dir))
-    return get_config("tiny", **{**base, **kw})
+from helpers import small_cfg  # noqa: E402  (tests/ is this script's directory)
 
 
 def save_leaves(path, tree):

@@ -21,28 +21,17 @@ import pytest
 from orgnav_jax import train as train_cli
 from orgnav_jax.errors import run_cli
 from orgnav_jax.training import loop
-from orgnav_jax.training.config import get_config, load_config
+from orgnav_jax.training.config import load_config
 from orgnav_jax.training.run_dir import LOCK_FILE, RunLock
 
-CHUNK = 16 * 8 * 2          # env steps per chunk of the runs below
+from helpers import CHUNK, small_cfg, small_options
 
-
-def options(tiny_dir, run_dir, **kw) -> dict:
-    """A few-second run on the tiny scenes: 4 chunks of 2 updates of 16 envs x 8 steps."""
-    return dict(dict(scenes_dir=tiny_dir, num_envs=16, rollout_len=8, updates_per_chunk=2,
-                     total_env_steps=4 * CHUNK, eval_every_chunks=2,
-                     eval_episodes_per_room_type=4, checkpoint_every_chunks=1,
-                     run_dir=str(run_dir)), **kw)
-
-
-def cfg_of(tiny_dir, run_dir, **kw):
-    return get_config("tiny", **options(tiny_dir, run_dir, **kw))
 
 
 def argv_of(tiny_dir, run_dir, **kw) -> list[str]:
-    """The CLI options of cfg_of(...), ending the run without a test evaluation."""
+    """The CLI options of small_cfg(...), ending the run without a test evaluation."""
     argv = ["--preset", "tiny", "--no-test", "--quiet"]
-    for k, v in options(tiny_dir, run_dir, **kw).items():
+    for k, v in small_options(tiny_dir, run_dir, **kw).items():
         argv += ["--" + k.replace("_", "-"), str(v)]
     return argv
 
@@ -69,7 +58,7 @@ def records(run_dir) -> list[tuple]:
 def full_run(tmp_path_factory, tiny_dir):
     """An uninterrupted 4-chunk run: the reference for every resumed one."""
     run_dir = tmp_path_factory.mktemp("full") / "run"
-    out = loop.train(cfg_of(tiny_dir, run_dir), progress=False)
+    out = loop.train(small_cfg(tiny_dir, run_dir), progress=False)
     return run_dir, out["runner"]
 
 
@@ -77,7 +66,7 @@ def full_run(tmp_path_factory, tiny_dir):
 def half_run(tmp_path_factory, tiny_dir):
     """The same run stopped after 2 of its 4 chunks (checkpoints 256 and 512)."""
     run_dir = tmp_path_factory.mktemp("half") / "run"
-    loop.train(cfg_of(tiny_dir, run_dir), progress=False, stop_after_chunks=2)
+    loop.train(small_cfg(tiny_dir, run_dir), progress=False, stop_after_chunks=2)
     return run_dir
 
 
@@ -201,7 +190,7 @@ def test_a_corrupt_newest_checkpoint_is_named_set_aside_and_resume_falls_back(
     damage(newest)
     broken = snapshot(newest)
     capsys.readouterr()
-    out = loop.train(cfg_of(tiny_dir, run), resume=True, progress=False)
+    out = loop.train(small_cfg(tiny_dir, run), resume=True, progress=False)
     err = capsys.readouterr().err
     assert f"checkpoint {newest}" in err and f"resumed from step {CHUNK}" in err
     aside = run / "broken_checkpoints" / str(2 * CHUNK)
@@ -226,7 +215,7 @@ def test_no_readable_checkpoint_is_an_error_that_moves_nothing(tmp_path, tiny_di
 
 def test_resume_rewrites_no_metrics_record_twice(tmp_path, tiny_dir, full_run):
     run = tmp_path / "run"
-    cfg = cfg_of(tiny_dir, run, checkpoint_every_chunks=2)
+    cfg = small_cfg(tiny_dir, run, checkpoint_every_chunks=2)
     loop.train(cfg, progress=False, stop_after_chunks=3)        # killed after chunk 3
     assert ("train", 3 * CHUNK) in records(run)                 # logged, not checkpointed
     loop.train(cfg, resume=True, progress=False)

@@ -19,6 +19,8 @@ import pytest
 import orgnav_jax
 from orgnav_jax import scenes as scenes_mod
 
+from helpers import small_cfg, trained_and_random_success
+
 WORKER = Path(__file__).with_name("scale_worker.py")
 PACKAGE_ROOT = str(Path(orgnav_jax.__file__).resolve().parent.parent)
 
@@ -391,8 +393,6 @@ def _chunk_pair(tiny_dir, tmp_path, model="baseline"):
     """One runner; a chunk of the float32 and the bfloat16 program from it."""
     from orgnav_jax.models import build_model
     from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
-    sys.path.insert(0, str(WORKER.parent))
-    from scale_worker import small_cfg
     train = scenes_mod.load(tiny_dir).split_view("train").to_device()
     out = {}
     for dtype in ("float32", "bfloat16"):
@@ -432,20 +432,12 @@ def test_bfloat16_computes_in_bf16_with_float32_parameters(tmp_path, tiny_dir, m
 def test_bfloat16_training_beats_random_on_the_val_rooms(tmp_path, tiny_dir):
     """~1-2 minutes: the baseline trained in bf16 for 100 k env steps on the tiny training
     rooms succeeds at least twice as often as random on the unseen val rooms."""
-    from orgnav_jax import episodes as E
-    from orgnav_jax import evaluation
     from orgnav_jax.training import loop
     from orgnav_jax.training.config import get_config
-    from orgnav_jax.training.runs import load_run_policy
     cfg = get_config("tiny", scenes_dir=tiny_dir, run_dir=str(tmp_path / "run"),
                      total_env_steps=102_400, dtype="bfloat16")
     loop.train(cfg, progress=False)
-    policy, params, _ = load_run_policy(tmp_path / "run", best=False)
-    val = scenes_mod.load(tiny_dir).split_view("val").to_device()
-    episodes = E.sample_episodes(val, seed=0, split="val")
-    trained = evaluation.evaluate(policy, params, val, episodes)["overall"]["success"]
-    rand = evaluation.evaluate(evaluation.random_policy(), None, val, episodes,
-                               seed=0)["overall"]["success"]
+    trained, rand = trained_and_random_success(tmp_path / "run", tiny_dir, "val")
     assert trained >= 2 * rand and trained > 0.05, (trained, rand)
 
 

@@ -248,6 +248,7 @@ def test_episode_traces_and_pictures_of_a_run_and_a_tpn_run(base_run, tpn_run, t
         tr = got["trace"]
         taken = int(tr["running"][0].sum())
         assert taken == int(tr["steps"][0]) >= 1            # one row per action taken
+        assert len(got["steps"]["state"]) == taken and got["outcome"] in evaluation.OUTCOMES
         assert sum(bool(tr[k][0]) for k in ("success", "wrong_done", "timeout")) == 1
         rows = got["scenes"].state_slice(int(got["episode"].scene[0]))
         assert np.all((tr["state"][0][:taken] >= rows.start) &

@@ -10,8 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from orgnav_jax import evaluation, scenes as scenes_mod
-from orgnav_jax import episodes as E
+from orgnav_jax import scenes as scenes_mod
 from orgnav_jax.training import loop
 from orgnav_jax.training.checkpoints import RunCheckpoints
 from orgnav_jax.training.driver import NonFiniteLoss
@@ -19,14 +18,7 @@ from orgnav_jax.training.config import get_config, load_config
 from orgnav_jax.training.losses import gae
 from orgnav_jax.training.runs import load_run_policy
 
-
-def small_cfg(tiny_dir, run_dir, **kw):
-    """A few-second run on the tiny scenes: 4 chunks of 2 updates of 16 envs x 8 steps."""
-    base = dict(scenes_dir=tiny_dir, num_envs=16, rollout_len=8, updates_per_chunk=2,
-                total_env_steps=16 * 8 * 2 * 4, eval_every_chunks=2,
-                eval_episodes_per_room_type=4, checkpoint_every_chunks=1,
-                run_dir=str(run_dir))
-    return get_config("tiny", **{**base, **kw})
+from helpers import small_cfg, trained_and_random_success
 
 
 def leaves(tree):
@@ -185,10 +177,5 @@ def test_trained_agent_beats_random_on_unseen_rooms(tmp_path, tiny_dir):
     cfg = get_config("tiny", scenes_dir=tiny_dir, run_dir=str(tmp_path / "run"),
                      total_env_steps=400_000)
     loop.train(cfg, progress=False)
-    policy, params, _ = load_run_policy(tmp_path / "run", best=False)
-    test = scenes_mod.load(tiny_dir).split_view("test").to_device()
-    episodes = E.sample_episodes(test, seed=0, split="test")
-    trained = evaluation.evaluate(policy, params, test, episodes)["overall"]["success"]
-    rand = evaluation.evaluate(evaluation.random_policy(), None, test, episodes,
-                               seed=0)["overall"]["success"]
+    trained, rand = trained_and_random_success(tmp_path / "run", tiny_dir, "test")
     assert trained >= 3 * rand and trained > 0.1, (trained, rand)

@@ -1,0 +1,36 @@
+"""Shared by the test modules and tests/scale_worker.py (a subprocess script): the small
+run every trainer test uses, and the trained-vs-random check of the learning tests.
+(pytest puts tests/ on sys.path: `from helpers import ...`.)"""
+
+from __future__ import annotations
+
+CHUNK = 16 * 8 * 2          # env steps per chunk of small runs
+
+
+def small_options(scenes_dir, run_dir, **kw) -> dict:
+    """A few-second run on the tiny scenes: 4 chunks of 2 updates of 16 envs x 8 steps,
+    val every 2 chunks, a checkpoint every chunk -> TrainConfig fields (kw override)."""
+    return dict(dict(scenes_dir=str(scenes_dir), num_envs=16, rollout_len=8,
+                     updates_per_chunk=2, total_env_steps=4 * CHUNK, eval_every_chunks=2,
+                     eval_episodes_per_room_type=4, checkpoint_every_chunks=1,
+                     run_dir=str(run_dir)), **kw)
+
+
+def small_cfg(scenes_dir, run_dir, **kw):
+    """The TrainConfig of small_options on the tiny preset."""
+    from orgnav_jax.training.config import get_config
+    return get_config("tiny", **small_options(scenes_dir, run_dir, **kw))
+
+
+def trained_and_random_success(run_dir, scenes_dir, split: str) -> tuple[float, float]:
+    """Success of a run's latest model and of the random policy on the same seeded
+    episodes of a split (the learning tests' comparison, fixed seeds)."""
+    from orgnav_jax import episodes, evaluation, scenes
+    from orgnav_jax.training.runs import load_run_policy
+    policy, params, _ = load_run_policy(run_dir, best=False)
+    rooms = scenes.load(scenes_dir).split_view(split).to_device()
+    eps = episodes.sample_episodes(rooms, seed=0, split=split)
+    trained = evaluation.evaluate(policy, params, rooms, eps)["overall"]["success"]
+    rand = evaluation.evaluate(evaluation.random_policy(), None, rooms, eps,
+                               seed=0)["overall"]["success"]
+    return trained, rand
