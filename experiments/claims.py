@@ -1,32 +1,60 @@
-"""The paper's claims, checked on a table's results: paired-by-seed differences.
+"""The paper's claims, checked on a table's runs: paired differences over seeds, with
+intervals, a one-sided paired test and a three-level verdict.
 
-    python experiments/claims.py experiments/results/table_5m/results.json --lr 1e-3
+    python experiments/claims.py experiments/results/table_5m            # writes claims.md
+    python experiments/claims.py --check experiments/results/table_5m    # recompute all
 
-Reads run_table.py's results.json (results[row][seed] = test metrics) and prints, claim
-by claim, the success difference (percentage points, test split) paired by seed: mean,
-std over seeds and the seeds used, and whether the claim holds (the mean difference has
-the claimed sign). A claim whose rows share no seed is reported as "not measured". Also
-writes the markdown table next to the results (claims.md).
+TABLE is a run_table.py output directory (spec.json, runs/, results.json, table.md). The
+results are read from the runs' own files (OUT/runs/<row>-s<seed>/test_results.json,
+.../tpn/test_<variant>.json): every summary is recomputed from the per-episode outcomes
+kept in them and must equal the summary stored beside them. For every claim (row vs
+reference row, a sign) and each metric (success, SPL), over the seeds both rows have:
+
+- the paired difference per seed (percentage points), its mean, the sample std (ddof 1);
+- a 95% t interval of the mean and a one-sided paired t-test (H1: the claimed sign);
+- a 95% bootstrap interval that resamples seeds and, within each seed, test episodes
+  (the rows share the seeded episode set, so episodes pair too; 2,000 resamples, fixed
+  generator seed);
+- the verdict: "holds in every seed", "holds on average (k of n seeds)" or "does not
+  hold"; and whether the t interval excludes 0.
+
+--check recomputes results.json, table.md and claims.md from the runs' files and exits 1
+on any difference (CI runs it on the committed table).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import run_table  # noqa: E402  (the sibling script: result paths, the table)
+
+BOOTSTRAP = 2000
+LEVEL = 0.95
+METRIC_NAMES = {"success": "success", "spl": "SPL"}
 
 
 def claims(lr: str) -> list[tuple[str, str, str, int]]:
     """(claim, row, reference row, sign): the claim holds when sign * (row - ref) > 0."""
     tpn = lambda base, v="tpn": f"{base}+{v}@{lr}"
     return [
-        ("IL > Baseline", "il", "baseline", 1),
+        # Table 1
+        ("Baseline > Random", "baseline", "random", 1),
+        ("Baseline > WE", "baseline", "we", 1),
         ("ORG > Baseline", "org", "baseline", 1),
+        ("ORG > D-SP", "org", "dsp", 1),
+        ("IL > Baseline", "il", "baseline", 1),
         ("ORG + IL > ORG", "org_il", "org", 1),
         ("Baseline + TPN > Baseline", tpn("baseline"), "baseline", 1),
-        ("ORG + IL + TPN > ORG + IL", tpn("org_il"), "org_il", 1),
+        ("full model > ORG + IL (w/o TPN)", tpn("org_il"), "org_il", 1),
+        # Table 2: ablations of the full model
+        ("full model > ORG + TPN (w/o IL)", tpn("org_il"), tpn("org"), 1),
+        ("full model > IL + TPN (w/o ORG)", tpn("org_il"), tpn("il"), 1),
         ("IL on every step < IL", "il_all", "il", -1),
         ("IL on failed moves < IL", "il_failed", "il", -1),
         ("TPN on every step < TPN (Baseline)", tpn("baseline", "tpn_all"), tpn("baseline"), -1),
@@ -37,6 +65,11 @@ def claims(lr: str) -> list[tuple[str, str, str, int]]:
     ]
 
 
+def t_quantile(p: float, df: int) -> float:
+    from scipy import stats
+    return float(stats.t.ppf(p, df))
+
+
 def paired(results: dict, row: str, ref: str, metric: str = "success"):
     """-> (differences in points (n,), seeds) over the seeds both rows have."""
     seeds = sorted(set(results.get(row, {})) & set(results.get(ref, {})), key=int)
@@ -44,47 +77,204 @@ def paired(results: dict, row: str, ref: str, metric: str = "success"):
     return d, seeds
 
 
+def bootstrap_interval(episodes: dict, row: str, ref: str, seeds: list[str], metric: str,
+                       resamples: int = BOOTSTRAP, level: float = LEVEL):
+    """95% percentile interval (points) of the mean paired difference, resampling seeds
+    and, within each drawn seed, episodes; None if a run lacks per-episode outcomes or
+    the two rows' episode sets differ in size."""
+    diffs = []
+    for s in seeds:
+        a, b = episodes.get(row, {}).get(s), episodes.get(ref, {}).get(s)
+        if a is None or b is None or len(a[metric]) != len(b[metric]):
+            return None
+        diffs.append(100 * (np.asarray(a[metric], np.float64) -
+                            np.asarray(b[metric], np.float64)))
+    d = np.stack(diffs)                                   # (n seeds, E episodes)
+    n, e = d.shape
+    rng = np.random.default_rng(0)
+    means = np.empty(resamples)
+    for i in range(resamples):
+        pick = rng.integers(0, n, n)
+        cols = rng.integers(0, e, (n, e))
+        means[i] = d[pick[:, None], cols].mean()
+    lo, hi = np.quantile(means, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
+def statistics(d: np.ndarray, sign: int) -> dict:
+    """Paired differences (n,) -> mean, sample std, t interval, one-sided p, verdict."""
+    n = len(d)
+    mean = float(d.mean())
+    out = {"n": n, "differences": [round(float(x), 2) for x in d], "mean": mean,
+           "std": float(d.std(ddof=1)) if n > 1 else None, "interval": None, "p": None}
+    if n > 1:
+        se = d.std(ddof=1) / np.sqrt(n)
+        half = t_quantile((1 + LEVEL) / 2, n - 1) * se
+        out["interval"] = (mean - half, mean + half)
+        if se > 0:
+            from scipy import stats
+            out["p"] = float(stats.t.sf(sign * mean / se, n - 1))
+        else:
+            out["p"] = 0.0 if sign * mean > 0 else 1.0
+    k = int((sign * d > 0).sum())
+    out["seeds_holding"] = k
+    if k == n:
+        out["verdict"] = "holds in every seed"
+    elif sign * mean > 0:
+        out["verdict"] = f"holds on average ({k} of {n} seeds)"
+    else:
+        out["verdict"] = "does not hold"
+    lo_hi = out["interval"]
+    out["excludes_0"] = bool(lo_hi and (lo_hi[0] > 0 or lo_hi[1] < 0))
+    return out
+
+
+def interval_text(iv) -> str:
+    return f"[{iv[0]:+.1f}, {iv[1]:+.1f}]" if iv else "-"
+
+
+def claim_rows(results: dict, episodes: dict, lr: str) -> list[dict]:
+    """Every claim's statistics for success and SPL (None where not measured)."""
+    out = []
+    for name, row, ref, sign in claims(lr):
+        entry = {"claim": name, "row": row, "ref": ref, "sign": sign}
+        for metric in METRIC_NAMES:
+            d, seeds = paired(results, row, ref, metric)
+            if not seeds:
+                entry[metric] = None
+                continue
+            st = statistics(d, sign)
+            st["seeds"] = seeds
+            st["bootstrap"] = bootstrap_interval(episodes, row, ref, seeds, metric)
+            entry[metric] = st
+        out.append(entry)
+    return out
+
+
 def full_model_best(results: dict, lr: str) -> str:
     """Whether ORG + IL + TPN has the highest mean success of the rows on the same seeds."""
     full = f"org_il+tpn@{lr}"
     if full not in results:
-        return "| full model (ORG + IL + TPN) best | not measured | | |"
+        return "The full model (ORG + IL + TPN) is not measured yet.\n"
     seeds = set(results[full])
     means = {row: np.mean([100 * r[s]["success"] for s in seeds]) for row, r in results.items()
              if seeds <= set(r)}
     best = max(means, key=means.get)
-    gap = means[full] - max(v for k, v in means.items() if k != full)
-    verdict = "holds" if best == full else f"does not hold (best: {best})"
-    return (f"| full model (ORG + IL + TPN) best | {gap:+.1f} vs the next row | "
-            f"{','.join(sorted(seeds, key=int))} | {verdict} |")
+    gap = means[full] - max((v for k, v in means.items() if k != full), default=means[full])
+    verdict = "the best row" if best == full else f"not the best row (best: {best})"
+    return (f"The full model (ORG + IL + TPN) is {verdict} in mean test success over seeds "
+            f"{','.join(sorted(seeds, key=int))}: {gap:+.1f} points against the next row.\n")
 
 
-def table(results: dict, lr: str) -> str:
-    lines = ["| claim | success difference (points), mean ± std | seeds | verdict |",
-             "|---|---|---|---|"]
-    for name, row, ref, sign in claims(lr):
-        d, seeds = paired(results, row, ref)
-        if not seeds:
-            lines.append(f"| {name} | not measured | | |")
+def table(results: dict, episodes: dict, lr: str) -> str:
+    """claims.md: one line per claim, success and SPL."""
+    lines = ["| claim | seeds | success diff (points): mean [95% t interval] | bootstrap "
+             "interval | p (one-sided) | verdict | SPL diff: mean [95% t interval] | "
+             "SPL verdict |", "|---|---|---|---|---|---|---|---|"]
+    for c in claim_rows(results, episodes, lr):
+        s, p = c["success"], c["spl"]
+        if s is None:
+            lines.append(f"| {c['claim']} | not measured | | | | | | |")
             continue
-        holds = sign * d.mean() > 0
-        std = f" ± {d.std():.1f}" if len(d) > 1 else " (one seed)"
-        lines.append(f"| {name} | {d.mean():+.1f}{std} | {','.join(seeds)} | "
-                     f"{'holds' if holds else 'does not hold'} |")
-    lines.append(full_model_best(results, lr))
-    return "\n".join(lines) + "\n"
+        pval = f"{s['p']:.3f}" if s["p"] is not None else "-"
+        zero = ", interval excludes 0" if s["excludes_0"] else ""
+        lines.append(
+            f"| {c['claim']} | {','.join(s['seeds'])} | {s['mean']:+.1f} "
+            f"{interval_text(s['interval'])} | {interval_text(s['bootstrap'])} | {pval} | "
+            f"{s['verdict']}{zero} | {p['mean']:+.1f} {interval_text(p['interval'])} | "
+            f"{p['verdict']} |")
+    return "\n".join(lines) + "\n\n" + full_model_best(results, lr)
 
 
-def main(argv: list[str] | None = None) -> None:
+def read_table_dir(out: Path) -> tuple[dict, dict, dict]:
+    """A table directory's spec and, from its runs' files, results[row][seed] = overall
+    summary and episodes[row][seed] = per-episode arrays (success, spl). Every summary is
+    recomputed from the per-episode outcomes and must equal the stored one (ValueError
+    naming the file otherwise); results written before per-episode outcomes were kept
+    are taken as stored, without a bootstrap."""
+    from orgnav_jax.evaluation import episodes_from_record, summarize
+    spec_path = out / "spec.json"
+    if not spec_path.exists():
+        raise ValueError(f"{spec_path}: missing (run_table.py --spec writes it)")
+    spec = run_table.read_spec(spec_path)
+    results: dict = {}
+    episodes: dict = {}
+    for row in spec["rows"]:
+        for seed in spec["seeds"]:
+            path = run_table.results_path(out, row, seed)
+            if not path.exists():
+                continue
+            doc = json.loads(path.read_text())
+            stored = doc["overall"]
+            if "per_episode" in doc:
+                per = episodes_from_record(doc["per_episode"])
+                again = summarize(per)
+                bad = [k for k in stored if k in again and
+                       not np.isclose(stored[k], again[k], rtol=0, atol=1e-12)]
+                if bad or set(again) != set(stored):
+                    raise ValueError(f"{path}: the stored summary differs from its "
+                                     f"per-episode outcomes in {bad or 'its keys'}")
+                episodes.setdefault(row, {})[str(seed)] = {
+                    "success": per["success"], "spl": per["spl"]}
+            results.setdefault(row, {})[str(seed)] = stored
+    return spec, results, episodes
+
+
+def lr_tag(spec: dict) -> str:
+    """The test-time learning rate tag of the table's TPN rows (the first @LR)."""
+    tags = [r.partition("@")[2] for r in spec["rows"] if "@" in r]
+    return tags[0] if tags else "1e-3"
+
+
+def expected_files(out: Path) -> dict[str, str]:
+    """results.json, table.md and claims.md as the runs' files give them."""
+    spec, results, episodes = read_table_dir(out)
+    return {"results.json": json.dumps(results, indent=1),
+            "table.md": run_table.table_text(results),
+            "claims.md": table(results, episodes, lr_tag(spec))}
+
+
+def write_all(out: Path) -> dict[str, str]:
+    """Write results.json, table.md and claims.md of `out` from its runs' files."""
+    files = expected_files(out)
+    for name, text in files.items():
+        (out / name).write_text(text)
+    return files
+
+
+def check(out: Path) -> list[str]:
+    """The files of `out` that differ from what its runs give (empty: all agree)."""
+    bad = []
+    for name, text in expected_files(out).items():
+        path = out / name
+        if not path.exists():
+            bad.append(f"{path}: missing")
+        elif name.endswith(".json"):
+            if json.loads(path.read_text()) != json.loads(text):
+                bad.append(f"{path}: differs from the runs' test results")
+        elif path.read_text() != text:
+            bad.append(f"{path}: differs from what the runs' files give")
+    return bad
+
+
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("results", help="run_table.py's results.json")
-    ap.add_argument("--lr", default="1e-3", help="the TPN rows' test-time learning rate tag")
+    ap.add_argument("table", help="a run_table.py output directory (with spec.json)")
+    ap.add_argument("--check", action="store_true",
+                    help="recompute results.json, table.md and claims.md from the runs' "
+                         "files; exit 1 on any difference, write nothing")
     args = ap.parse_args(argv)
-    path = Path(args.results)
-    text = table(json.loads(path.read_text()), args.lr)
-    (path.parent / "claims.md").write_text(text)
-    print(text)
+    out = Path(args.table)
+    if args.check:
+        bad = check(out)
+        for line in bad:
+            print(f"check failed: {line}", file=sys.stderr)
+        if not bad:
+            print(f"{out}: results.json, table.md and claims.md agree with the runs' files")
+        return 1 if bad else 0
+    print(write_all(out)["claims.md"])
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

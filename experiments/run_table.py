@@ -1,5 +1,11 @@
 """Reproduce a table: several rows (training presets) x seeds, equal budgets, test split.
 
+    python experiments/run_table.py --spec experiments/tables/table_5m.json
+    python experiments/claims.py --check experiments/results/table_5m
+
+A spec (JSON: out, rows, seeds, config overrides, tpn fields) is the table's one
+definition; it is copied to OUT/spec.json, which claims.py reads. Without --spec:
+
     python experiments/run_table.py --rows baseline il org org_il il_all --seeds 0 1 2 \\
         --total-env-steps 1000000 --out experiments/results/tables
 
@@ -14,6 +20,12 @@ the table is rewritten after every run: OUT/results.json (every run) and OUT/tab
 failed moves); at the end OUT/curves.png shows the val learning curves of the non-TPN
 rows (python -m orgnav_jax.plots curves). Rows already in OUT/results.json from earlier
 invocations stay. Extra `--FIELD VALUE` options apply to every row.
+
+The row `random` evaluates the uniform random policy on the same test episodes (seed S
+samples its actions) in OUT/runs/random-s<seed>. Every run directory also gets
+provenance.json: the code version (git commit, uncommitted changes), CPU, jax version and
+time of each session that trained or evaluated it; results JSONs keep every episode's
+outcome (per_episode), so claims.py can pair rows episode by episode.
 
 A row BASE+VARIANT (VARIANT in tpn, tpn_all, tpn_random, tpn_cosine, tpn_train_mode) uses the run of row BASE (trained
 first if needed), trains its TPN (stage 2) in OUT/runs/BASE-s<seed>/tpn once, and
@@ -33,7 +45,10 @@ of a row that were started one by one are finished one by one).
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
+import platform
+import subprocess
 import sys
 from pathlib import Path
 
@@ -54,34 +69,86 @@ TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": 
                 "tpn_train_mode": {"tpn_train_mode": True}}   # the release's dropout confound
 
 
+SPEC_KEYS = {"out": str, "rows": list, "seeds": list, "config": dict, "tpn": dict}
+
+
+def results_path(out: Path, row: str, seed: int | str) -> Path:
+    """Where a row's test results for one seed live: OUT/runs/ROW-sS/test_results.json, or
+    for BASE+VARIANT[@LR] OUT/runs/BASE-sS/tpn/test_VARIANT[@LR].json."""
+    base, plus, variant = row.partition("+")
+    run_dir = out / "runs" / f"{base}-s{seed}"
+    return run_dir / "tpn" / f"test_{variant}.json" if plus else run_dir / "test_results.json"
+
+
+def provenance() -> dict:
+    """What made a run: the code version, the machine, the time."""
+    top = Path(__file__).resolve().parents[1]
+    git = lambda *a: subprocess.run(["git", *a], cwd=top, capture_output=True,
+                                    text=True).stdout.strip()
+    cpu = next((line.split(":", 1)[1].strip() for line in
+                Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.processor()) \
+        if Path("/proc/cpuinfo").exists() else platform.processor()
+    import jax
+    return {"code": git("rev-parse", "HEAD") or "unknown",
+            "uncommitted_changes": bool(git("status", "--porcelain", "--untracked-files=no",
+                                            "--", "orgnav_jax", "experiments")),
+            "cpu": cpu, "jax": jax.__version__, "python": platform.python_version(),
+            "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+
+
+def record_provenance(run_dir: Path, what: str) -> None:
+    """Append this session and what it did to RUN_DIR/provenance.json (after the work: a
+    fresh run directory must be empty when training starts)."""
+    path = run_dir / "provenance.json"
+    sessions = json.loads(path.read_text()) if path.exists() else []
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(sessions + [dict(provenance(), did=what)], indent=1))
+
+
 def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -> dict:
     """BASE+VARIANT: train (or reuse) the base row and its TPN, evaluate the variant."""
     from orgnav_jax.tpn.config import get_tpn_config
     base, variant = row.split("+")
     variant, _, lr = variant.partition("@")
     run_one(base, seed, out, overrides)
-    tpn_dir = out / "runs" / f"{base}-s{seed}" / "tpn"
-    results = tpn_dir / f"test_{variant}{'@' + lr if lr else ''}.json"
+    results = results_path(out, row, seed)
+    tpn_dir = results.parent
     if results.exists():
         return json.loads(results.read_text())["overall"]
     cfg = get_tpn_config(**tpn_fields, base_dir=str(tpn_dir.parent), seed=seed,
                          run_dir=str(tpn_dir))
     # trains, continues an interrupted run, or (finished) only reloads it
-    api.train_tpn(cfg, resume=is_run_dir(tpn_dir), progress=sys.stderr.isatty())
+    resumed = is_run_dir(tpn_dir)
+    api.train_tpn(cfg, resume=resumed, progress=sys.stderr.isatty())
     test_time = dict(TPN_VARIANTS[variant], **({"tpn_lr": float(lr)} if lr else {}))
-    return api.evaluate_run(tpn_dir, "test", out=results, progress=False,
-                            **test_time)["overall"]
+    metrics = api.evaluate_run(tpn_dir, "test", out=results, progress=False,
+                               **test_time)["overall"]
+    record_provenance(tpn_dir, f"{'finished or reloaded' if resumed else 'trained'} the "
+                               f"TPN, tested {variant}{'@' + lr if lr else ''}")
+    return metrics
 
 
 def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
-    """Train (or resume, or skip) one row and seed -> its test metrics."""
-    run_dir = out / "runs" / f"{row}-s{seed}"
-    results = run_dir / "test_results.json"
+    """Train (or resume, or skip) one row and seed -> its test metrics. Row `random`:
+    the random policy on the same test episodes, its actions sampled with `seed`."""
+    results = results_path(out, row, seed)
+    run_dir = results.parent
     if results.exists():
         return json.loads(results.read_text())["overall"]
+    if row == "random":
+        metrics = api.evaluate_policy(
+            "random", "test", overrides.get("scene_preset", "small"),
+            scenes_dir=overrides.get("scenes_dir"), seed=seed, out=results,
+            progress=False)["overall"]
+        record_provenance(run_dir, "tested")
+        return metrics
     cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir)})
-    api.train(cfg, resume=is_run_dir(run_dir), progress=sys.stderr.isatty())
-    return api.test_run(run_dir, progress=False)["overall"]
+    resumed = is_run_dir(run_dir)
+    api.train(cfg, resume=resumed, progress=sys.stderr.isatty())
+    metrics = api.test_run(run_dir, progress=False)["overall"]
+    record_provenance(run_dir, f"{'resumed and finished' if resumed else 'trained'}, tested")
+    return metrics
 
 
 def train_row_population(row: str, seeds: list[int], out: Path, overrides: dict) -> None:
@@ -98,10 +165,11 @@ def train_row_population(row: str, seeds: list[int], out: Path, overrides: dict)
 
 
 def row_name(text: str) -> str:
-    """Validate a --rows entry: ROW, or BASE+VARIANT[@LR]."""
+    """Validate a --rows entry: ROW (a TABLE_ROWS name or random), or BASE+VARIANT[@LR]."""
     base, plus, variant = text.partition("+")
     variant, at, lr = variant.partition("@")
-    ok = base in TABLE_ROWS and (not plus or variant in TPN_VARIANTS) and (plus or not at)
+    ok = (base in TABLE_ROWS or (base == "random" and not plus)) and \
+        (not plus or variant in TPN_VARIANTS) and (plus or not at)
     try:
         ok = ok and (not at or float(lr) >= 0)
     except ValueError:
@@ -113,32 +181,38 @@ def row_name(text: str) -> str:
     return text
 
 
+def sample_std(v: np.ndarray) -> float:
+    """The sample standard deviation (ddof 1); 0 for a single value."""
+    return float(v.std(ddof=1)) if len(v) > 1 else 0.0
+
+
 def paired_gain(results: dict, row: str) -> str:
-    """A TPN row's success minus its base row's, per seed: 'mean ± std' (percent points),
-    or '' for rows without a base or without shared seeds."""
+    """A TPN row's success minus its base row's, per seed: 'mean ± sample std' (percent
+    points), or '' for rows without a base or without shared seeds."""
     base = row.partition("+")[0]
     seeds = sorted(set(results[row]) & set(results.get(base, {}))) if "+" in row else []
     if not seeds:
         return ""
     d = 100 * np.array([results[row][s]["success"] - results[base][s]["success"]
                         for s in seeds])
-    return f"{d.mean():+.1f} ± {d.std():.1f}"
+    return f"{d.mean():+.1f} ± {sample_std(d):.1f}"
 
 
 def mean_std(by_seed: dict[str, dict], key: str, scale: float = 100.0) -> str:
-    """'mean ± std' of one metric over seeds, or '-' where a seed's results lack it
-    (results of runs made before the metric existed)."""
+    """'mean ± sample std' of one metric over seeds, or '-' where a seed's results lack
+    it (results of runs made before the metric existed)."""
     if not by_seed or any(key not in r for r in by_seed.values()):
         return "-"
     v = scale * np.array([r[key] for r in by_seed.values()], np.float64)
-    return f"{v.mean():.1f} ± {v.std():.1f}"
+    return f"{v.mean():.1f} ± {sample_std(v):.1f}"
 
 
-def write_table(out: Path, results: dict[str, dict[str, dict]]) -> str:
-    """results[row][seed] = metrics -> markdown table of mean +- std over seeds: METRICS
-    in percent; TPN rows also show their success gain over their base row, paired by
-    seed; then the failure analysis (FAILURE_METRICS: wrong Done and timeout in percent
-    of episodes, revisits and failed moves per episode; '-' for older results)."""
+def table_text(results: dict[str, dict[str, dict]]) -> str:
+    """results[row][seed] = metrics -> markdown table of mean ± sample std over seeds:
+    METRICS in percent; TPN rows also show their success gain over their base row,
+    paired by seed; then the failure analysis (FAILURE_METRICS: wrong Done and timeout
+    in percent of episodes, revisits and failed moves per episode; '-' for older
+    results)."""
     head = ["row", "seeds", "Success", "SPL", "Success (L>=5)", "SPL (L>=5)",
             "gain vs base"] + [label for _, label, _ in FAILURE_METRICS]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -146,10 +220,53 @@ def write_table(out: Path, results: dict[str, dict[str, dict]]) -> str:
         cells = [mean_std(by_seed, m) for m in METRICS] + [paired_gain(results, row)]
         cells += [mean_std(by_seed, k, scale) for k, _, scale in FAILURE_METRICS]
         lines.append(f"| {row} | {len(by_seed)} | " + " | ".join(cells) + " |")
-    text = "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n"
+
+
+def write_table(out: Path, results: dict[str, dict[str, dict]]) -> str:
+    """OUT/table.md (table_text) and OUT/results.json (results[row][seed] = overall)."""
+    text = table_text(results)
     (out / "table.md").write_text(text)
     (out / "results.json").write_text(json.dumps(results, indent=1))
     return text
+
+
+def write_outputs(out: Path, results: dict, spec: dict | None) -> str:
+    """The table files: with a spec, results.json, table.md and claims.md recomputed from
+    the runs' files (claims.py); without, write_table. -> table.md's text."""
+    if spec is None:
+        return write_table(out, results)
+    from claims import write_all          # the sibling script (it imports this one)
+    return write_all(out)["table.md"]
+
+
+def read_spec(path: str | Path) -> dict:
+    """A table spec (JSON: out, rows, seeds, config, tpn) -> dict; ValueError naming the
+    file and the field otherwise."""
+    try:
+        spec = json.loads(Path(path).read_text())
+    except ValueError as err:
+        raise ValueError(f"table spec {path}: not JSON ({err})") from None
+    if not isinstance(spec, dict):
+        raise ValueError(f"table spec {path}: expected a JSON object")
+    for key, kind in SPEC_KEYS.items():
+        if key not in spec or not isinstance(spec[key], kind):
+            raise ValueError(f"table spec {path}: field {key!r} missing or not a "
+                             f"{kind.__name__}")
+    unknown = sorted(set(spec) - set(SPEC_KEYS) - {"about"})
+    if unknown:
+        raise ValueError(f"table spec {path}: unknown field(s) {unknown}")
+    try:
+        for row in spec["rows"]:
+            row_name(row)
+    except argparse.ArgumentTypeError as err:
+        raise ValueError(f"table spec {path}: field 'rows': {err}") from None
+    if not spec["seeds"] or not all(isinstance(x, int) and x >= 0 for x in spec["seeds"]):
+        raise ValueError(f"table spec {path}: field 'seeds': expected integers >= 0")
+    get_config("baseline", **spec["config"])          # names a bad field or value
+    from orgnav_jax.tpn.config import get_tpn_config
+    get_tpn_config(base_dir="runs/x", **spec["tpn"])
+    return spec
 
 
 def write_curves(out: Path, results: dict[str, dict[str, dict]]) -> Path | None:
@@ -184,20 +301,37 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", default="experiments/results/tables")
     ap.add_argument("--population", action="store_true",
                     help="train the seeds of each navigation row in one program")
+    ap.add_argument("--spec", default=None,
+                    help="a table spec (JSON: out, rows, seeds, config, tpn), e.g. "
+                         "experiments/tables/table_5m.json; replaces --rows, --seeds, "
+                         "--out, --tpn-episodes and the config options")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
     overrides = {k: v for k, v in overrides_from_args(args).items()
                  if k not in ("seed", "run_dir")}
     tpn_fields = {} if args.tpn_episodes is None else {"total_episodes": args.tpn_episodes}
+    spec = None
+    if args.spec:
+        given = [a for a in (argv if argv is not None else sys.argv[1:])
+                 if a.startswith("--") and a.split("=")[0] not in ("--spec", "--population")]
+        if given:
+            ap.error(f"--spec defines the table; drop {given[0].split('=')[0]}")
+        spec = read_spec(args.spec)
+        args.rows, args.seeds, args.out = spec["rows"], spec["seeds"], spec["out"]
+        overrides, tpn_fields = spec["config"], spec["tpn"]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with RunLock(out):        # one table writer per --out (results.json is rewritten)
-        # rows of earlier invocations with the same --out stay in the table
+        if spec is not None:
+            (out / "spec.json").write_text(json.dumps(spec, indent=1) + "\n")
+        # without a spec, rows of earlier invocations with the same --out stay in the
+        # table; with one, the table is exactly what the spec's runs hold
         saved = out / "results.json"
         results: dict[str, dict[str, dict]] = (json.loads(saved.read_text())
-                                               if saved.exists() else {})
+                                               if saved.exists() and spec is None else {})
         if args.population:
-            for base in dict.fromkeys(row.partition("+")[0] for row in args.rows):
+            for base in dict.fromkeys(row.partition("+")[0] for row in args.rows
+                                      if row != "random"):
                 train_row_population(base, args.seeds, out, overrides)
         for seed in args.seeds:                 # seed-major: a partial table covers all rows
             for row in args.rows:
@@ -206,8 +340,8 @@ def main(argv: list[str] | None = None) -> None:
                 results.setdefault(row, {})[str(seed)] = metrics
                 print(f"{row} seed {seed}: " + ", ".join(f"{m} {100 * metrics[m]:.1f}"
                                                           for m in METRICS), flush=True)
-                write_table(out, results)
-        print(write_table(out, results))
+                write_outputs(out, results, spec)
+        print(write_outputs(out, results, spec))
         curves = write_curves(out, results)
         if curves:
             print(f"learning curves: {curves}")

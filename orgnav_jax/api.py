@@ -23,7 +23,7 @@ from pathlib import Path
 
 from orgnav_jax.constants import EPISODES_PER_ROOM_TYPE
 from orgnav_jax.errors import UserError
-from orgnav_jax.safe_write import check_output_file, write_text_atomic
+from orgnav_jax.safe_write import check_output_file, json_text, write_text_atomic
 from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.training.run_dir import is_run_dir
 
@@ -139,7 +139,7 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
                                      progress=bar.update)
     result.update({"policy": loaded.name, "split": split, "scenes": tag,
                    "episode_file": str(ep_path), "out": str(out)})
-    write_text_atomic(out, json.dumps(result, indent=1))
+    write_text_atomic(out, json_text(result))
     return result
 
 

@@ -192,6 +192,29 @@ def summarize(per_episode: dict[str, np.ndarray]) -> dict[str, float]:
     return out
 
 
+# what a results JSON keeps of every episode (its "per_episode" part): enough to recompute
+# every summary and to pair two policies episode by episode (experiments/claims.py)
+EPISODE_FIELDS = ("outcome", "path_len", "optimal_len", "revisits", "failed_moves",
+                  "room_type", "target")
+
+
+def episode_record(per_episode: dict[str, np.ndarray]) -> dict[str, list[int]]:
+    """run_episodes' arrays -> {field: list of ints (E,)} for EPISODE_FIELDS; outcome is
+    the index into OUTCOMES (0 success, 1 wrong_done, 2 timeout)."""
+    outcome = np.argmax(np.stack([np.asarray(per_episode[k]) for k in OUTCOMES]), axis=0)
+    return {k: np.asarray(outcome if k == "outcome" else per_episode[k]).astype(int).tolist()
+            for k in EPISODE_FIELDS}
+
+
+def episodes_from_record(record: dict[str, list[int]]) -> dict[str, np.ndarray]:
+    """episode_record's lists -> the arrays summarize/metrics read (the inverse)."""
+    out = {k: np.asarray(record[k], np.int64) for k in EPISODE_FIELDS if k != "outcome"}
+    outcome = np.asarray(record["outcome"], np.int64)
+    out.update({k: outcome == i for i, k in enumerate(OUTCOMES)})
+    out["spl"] = spl(out["success"], out["path_len"], out["optimal_len"])
+    return out
+
+
 def metrics(per_episode: dict[str, np.ndarray]) -> dict:
     """{"overall", "per_room_type", "per_target"} summaries (see summarize)."""
     def part(mask):
@@ -211,11 +234,12 @@ def metrics(per_episode: dict[str, np.ndarray]) -> dict:
 def evaluate(policy: Policy, policy_params, scenes: SceneSet, episodes: EpisodeSet,
              params: env.EnvParams | None = None, seed: int = 0, batch_size: int = 1000,
              progress: Callable[[int], None] | None = None) -> dict:
-    """run_episodes + metrics -> {"overall", "per_room_type", "per_target"}."""
+    """run_episodes + metrics -> {"overall", "per_room_type", "per_target",
+    "per_episode" (episode_record: every episode's outcome and lengths, in order)}."""
     params = params or env.EnvParams.evaluation()
     per_episode = run_episodes(policy, policy_params, scenes, episodes, params, seed,
                                min(batch_size, len(episodes)), progress)
-    return metrics(per_episode)
+    return dict(metrics(per_episode), per_episode=episode_record(per_episode))
 
 
 def format_table(rows: dict[str, dict], title: str = "") -> str:

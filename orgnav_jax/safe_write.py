@@ -11,6 +11,7 @@ names it; nothing is deleted or overwritten.
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -54,3 +55,19 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return path
+
+
+def json_text(doc, indent: int = 1) -> str:
+    """json.dumps(doc, indent=indent), with lists of numbers on one line each (per-episode
+    arrays stay one line per field instead of one line per value)."""
+    def encode(x, level):
+        pad, inner = " " * (indent * level), " " * (indent * (level + 1))
+        if isinstance(x, dict) and x:
+            items = [f"{inner}{json.dumps(str(k))}: {encode(v, level + 1)}"
+                     for k, v in x.items()]
+            return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+        if isinstance(x, list) and x and any(isinstance(v, (dict, list)) for v in x):
+            return "[\n" + ",\n".join(inner + encode(v, level + 1) for v in x) + \
+                "\n" + pad + "]"
+        return json.dumps(x, separators=(",", ":") if isinstance(x, list) else None)
+    return encode(doc, 0)

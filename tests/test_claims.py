@@ -1,45 +1,122 @@
-"""experiments/claims.py: paired-by-seed differences and verdicts on a hand-made table."""
+"""experiments/claims.py: paired statistics, verdicts and --check on a hand-made table."""
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
 
 
 @pytest.fixture(scope="module")
 def claims():
-    path = Path(__file__).resolve().parents[1] / "experiments" / "claims.py"
-    spec = importlib.util.spec_from_file_location("claims", path)
+    sys.path.insert(0, str(EXPERIMENTS))
+    spec = importlib.util.spec_from_file_location("claims", EXPERIMENTS / "claims.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
 
 
-def _row(*success):
-    return {str(s): {"success": v} for s, v in enumerate(success)}
+def fake_results(success: np.ndarray, rng) -> dict:
+    """A results JSON as api.evaluate writes it, from per-episode success flags."""
+    from orgnav_jax.evaluation import episode_record, metrics
+    e = len(success)
+    optimal = rng.integers(1, 12, e)
+    path = optimal + rng.integers(0, 8, e)
+    timeout = ~success & (rng.random(e) < 0.5)
+    per = {"success": success, "wrong_done": ~success & ~timeout, "timeout": timeout,
+           "path_len": path, "optimal_len": optimal, "revisits": rng.integers(0, 5, e),
+           "failed_moves": rng.integers(0, 3, e), "room_type": np.arange(e) % 4,
+           "target": np.arange(e) % 22}
+    per["spl"] = success * optimal / np.maximum(path, optimal)
+    return dict(metrics(per), per_episode=episode_record(per))
 
 
-def test_paired_differences_verdicts_and_full_model(claims, tmp_path):
-    results = {"baseline": _row(0.50, 0.60, 0.40), "il": _row(0.55, 0.62, 0.46),
-               "org": _row(0.45, 0.61), "org_il": _row(0.70, 0.70, 0.70),
-               "org_il+tpn@1e-3": _row(0.72, 0.69, 0.74),
-               "org_il+tpn_random@1e-3": _row(0.73, 0.75, 0.80)}
-    d, seeds = claims.paired(results, "il", "baseline")
-    assert seeds == ["0", "1", "2"]
-    assert d.tolist() == pytest.approx([5.0, 2.0, 6.0])
-    d, seeds = claims.paired(results, "org", "baseline")       # only the shared seeds
-    assert seeds == ["0", "1"] and d.tolist() == pytest.approx([-5.0, 1.0])
-    path = tmp_path / "results.json"
-    path.write_text(json.dumps(results))
-    claims.main([str(path)])
-    text = (tmp_path / "claims.md").read_text()
-    assert "| IL > Baseline | +4.3 ± 1.7 | 0,1,2 | holds |" in text
-    assert "| ORG > Baseline | -2.0 ± 3.0 | 0,1 | does not hold |" in text
-    assert "| IL on every step < IL | not measured |" in text
-    # random targets beat the TPN here: the claim fails, and the full model is not best
-    assert "| TPN random target < TPN (ORG + IL) | +4.3 ± 2.4 | 0,1,2 | does not hold |" \
-        in text
-    assert "does not hold (best: org_il+tpn_random@1e-3)" in text
+@pytest.fixture()
+def table_dir(tmp_path):
+    """Rows baseline, il (better in every seed), org (better on average in 2 of 3 seeds),
+    random (worse), 3 seeds, 200 episodes each, as run_table.py lays them out."""
+    rng = np.random.default_rng(1)
+    rates = {"random": [0.05, 0.05, 0.05], "baseline": [0.5, 0.6, 0.4],
+             "il": [0.6, 0.7, 0.5], "org": [0.65, 0.7, 0.35]}
+    for row, by_seed in rates.items():
+        for seed, p in enumerate(by_seed):
+            success = np.zeros(200, bool)
+            success[rng.permutation(200)[:int(p * 200)]] = True
+            run = tmp_path / "runs" / f"{row}-s{seed}"
+            run.mkdir(parents=True)
+            (run / "test_results.json").write_text(json.dumps(fake_results(success, rng)))
+    spec = {"out": str(tmp_path), "rows": ["baseline", "il", "org", "random",
+                                           "org_il+tpn@1e-3"],
+            "seeds": [0, 1, 2], "config": {}, "tpn": {}}
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    return tmp_path
+
+
+def test_statistics_verdicts_and_intervals(claims):
+    from scipy import stats
+    d = np.array([10.5, -3.0, -2.5])
+    st = claims.statistics(d, 1)
+    assert st["verdict"] == "holds on average (1 of 3 seeds)"
+    assert st["std"] == pytest.approx(d.std(ddof=1))            # the sample std
+    half = stats.t.ppf(0.975, 2) * d.std(ddof=1) / np.sqrt(3)
+    assert st["interval"] == pytest.approx((d.mean() - half, d.mean() + half))
+    assert st["p"] == pytest.approx(stats.ttest_1samp(d, 0, alternative="greater").pvalue)
+    assert not st["excludes_0"]
+    assert claims.statistics(np.array([2.0, 3.0, 2.5]), 1)["verdict"] == "holds in every seed"
+    assert claims.statistics(np.array([2.0, 3.0, 2.5]), 1)["excludes_0"]
+    assert claims.statistics(np.array([2.0, 3.0, 2.5]), -1)["verdict"] == "does not hold"
+    assert claims.statistics(np.array([-2.0, -3.0]), -1)["verdict"] == "holds in every seed"
+
+
+def test_claims_table_check_and_tampering(claims, table_dir, capsys):
+    assert claims.main([str(table_dir)]) == 0
+    text = (table_dir / "claims.md").read_text()
+    line = next(x for x in text.splitlines() if x.startswith("| IL > Baseline |"))
+    assert "| 0,1,2 | +10.0 " in line and "holds in every seed, interval excludes 0" in line
+    line = next(x for x in text.splitlines() if x.startswith("| ORG > Baseline |"))
+    assert "holds on average (2 of 3 seeds)" in line
+    assert "| Baseline > Random |" in text and "| ORG + IL > ORG | not measured |" in text
+    assert "not measured yet" in text                   # no full-model row
+    # the bootstrap interval: over seeds and episodes, around the mean difference
+    _, results, episodes = claims.read_table_dir(table_dir)
+    lo, hi = claims.bootstrap_interval(episodes, "il", "baseline", ["0", "1", "2"],
+                                       "success")
+    assert lo < 10.0 < hi and hi - lo < 20
+    # --check agrees, then fails on an edited table and on a tampered run
+    assert claims.main(["--check", str(table_dir)]) == 0
+    table = table_dir / "table.md"
+    table.write_text(table.read_text().replace("| il | 3 |", "| il | 4 |"))
+    assert claims.main(["--check", str(table_dir)]) == 1
+    assert "table.md: differs" in capsys.readouterr().err
+    claims.main([str(table_dir)])
+    run = table_dir / "runs" / "il-s1" / "test_results.json"
+    doc = json.loads(run.read_text())
+    doc["overall"]["success"] += 0.01
+    run.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=r"il-s1/test_results.json: the stored summary "
+                                         r"differs from its per-episode outcomes in "
+                                         r"\['success'\]"):
+        claims.main(["--check", str(table_dir)])
+
+
+def test_run_table_spec_is_checked(tmp_path):
+    sys.path.insert(0, str(EXPERIMENTS))
+    import run_table
+    spec = run_table.read_spec(EXPERIMENTS / "tables" / "table_5m.json")
+    assert spec["seeds"] == [0, 1, 2, 3, 4] and "random" in spec["rows"]
+    assert run_table.results_path(Path("T"), "org_il+tpn_all@1e-3", 3) == \
+        Path("T/runs/org_il-s3/tpn/test_tpn_all@1e-3.json")
+    for change, match in (({"rows": ["nope"]}, "field 'rows': unknown row 'nope'"),
+                          ({"seeds": [-1]}, "field 'seeds'"),
+                          ({"config": {"lr": -1.0}}, "'lr'"),
+                          ({"extra": 1}, r"unknown field\(s\) \['extra'\]")):
+        bad = tmp_path / "spec.json"
+        bad.write_text(json.dumps(dict(spec, **change)))
+        with pytest.raises(ValueError, match=match):
+            run_table.read_spec(bad)
