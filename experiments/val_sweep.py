@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orgnav_jax.training.run_dir import is_run_dir
+from orgnav_jax.training.run_dir import METRICS_FILE, is_run_dir, read_metrics
 from orgnav_jax.training.config import TrainConfig, get_config, load_config
 
 
@@ -50,9 +50,15 @@ def parse_variant(text: str) -> tuple[str, str, dict]:
 def best_val(run_dir: Path, up_to: int) -> dict:
     """The best val record of a run up to `up_to` env steps (metrics.jsonl, by success
     then SPL, as the trainer picks its best checkpoint)."""
-    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()
-               if line.strip()]
-    val = [r for r in records if r.get("kind") == "val" and r["env_steps"] <= up_to]
+    val = [r for r in read_metrics(run_dir)          # the typed reader of metrics.jsonl
+           if r["kind"] == "val" and r["env_steps"] <= up_to]
+    if not val:
+        raise ValueError(f"{run_dir / METRICS_FILE}: no val record up to env step {up_to:,}")
+    for r in val:
+        missing = [k for k in ("success", "spl") if k not in r]
+        if missing:
+            raise ValueError(f"{run_dir / METRICS_FILE}: the val record at env step "
+                             f"{r['env_steps']:,} lacks field(s) {missing}")
     return max(val, key=lambda r: (r["success"], r["spl"]))
 
 
@@ -90,7 +96,8 @@ def main(argv: list[str] | None = None) -> None:
     results = json.loads(saved.read_text()) if saved.exists() else {}
     for seed in args.seeds:
         for name, row, overrides in args.variants:
-            run_dir = Path(args.runs or out / "runs") / f"{name}-s{seed}"
+            run_dir = Path(args.runs if args.runs is not None else out / "runs") / \
+                f"{name}-s{seed}"
             cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir),
                                      "total_env_steps": args.total_env_steps})
             print(f"{name} seed {seed}: {row} {overrides}", flush=True)

@@ -28,6 +28,10 @@ from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.training.run_dir import is_run_dir
 
 RESULTS = "an evaluation results JSON of orgnav_jax.evaluate"
+# host memory one evaluated episode takes at its peak (sampling ~90 B, measured with
+# tracemalloc; per-episode arrays and the results' per-episode lists and text): an
+# over-estimate, for refusing episode counts that cannot fit before sampling them
+EPISODE_BYTES = 500
 EPISODE_FILE = "an episode file of orgnav_jax.evaluate"
 
 
@@ -41,6 +45,7 @@ class LoadedPolicy:
     scenes_dir: str | None = None
     scene_seed: int = 0
     batch_size: int = 1000       # episodes per jitted batch
+    from_run: bool = False       # a run's policy (its scenes are the run's own)
 
 
 def load_policy(policy: str | None = None, run_dir: str | None = None,
@@ -60,12 +65,12 @@ def load_policy(policy: str | None = None, run_dir: str | None = None,
         pol, params, run_cfg, tpn_cfg = load_tpn_policy(tpn_dir, **test_time)
         return LoadedPolicy(pol, params, f"{Path(tpn_cfg.base_dir).name}-{pol.name}",
                             run_cfg.scene_preset, run_cfg.scenes_dir, run_cfg.scene_seed,
-                            default_batch_size(params["base"], tpn_cfg))
+                            default_batch_size(params["base"], tpn_cfg), from_run=True)
     if run_dir is not None:
         from orgnav_jax.training.runs import load_run_policy
         pol, params, run_cfg = load_run_policy(run_dir)
         return LoadedPolicy(pol, params, Path(run_dir).name, run_cfg.scene_preset,
-                            run_cfg.scenes_dir, run_cfg.scene_seed)
+                            run_cfg.scenes_dir, run_cfg.scene_seed, from_run=True)
     policies = {"random": evaluation.random_policy, "expert": evaluation.expert_policy}
     name = policy or "random"
     if name not in policies:
@@ -96,6 +101,7 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
     per room type, per target, failure analysis; docs/evaluation.md) with the policy,
     split, scenes, episode_file and out. The episodes are replayed from `episodes` or
     sampled with episode_seed (and saved beside `out`); the results go to `out` (default
+    runs/eval/<run>-<split>.json for a run on its own scenes, else
     runs/eval/<name>-<scenes>-<split>.json). Files that are not ours are never replaced."""
     from tqdm import tqdm
 
@@ -107,15 +113,32 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
         raise UserError(f"split {split!r}: expected train, val or test")
     if per_room_type < 1:
         raise UserError(f"--episodes-per-room-type {per_room_type}: expected an integer >= 1")
+    if not episodes:
+        from orgnav_jax.constants import ROOM_TYPES
+        from orgnav_jax.training.memory import available_memory, human
+        need = per_room_type * len(ROOM_TYPES) * EPISODE_BYTES
+        have, source = available_memory()
+        if have is not None and need > have:
+            raise UserError(f"--episodes-per-room-type {per_room_type:,}: ~{human(need)} of "
+                            f"memory for {per_room_type * len(ROOM_TYPES):,} episodes; this "
+                            f"machine has {human(have)} {source}")
     if batch_size is not None and batch_size < 1:
         raise UserError(f"--batch-size {batch_size}: expected an integer >= 1")
     if episode_seed < 0:
         raise UserError(f"--episode-seed {episode_seed}: expected an integer >= 0")
-    scenes_dir = scenes_dir or loaded.scenes_dir
+    for name, value in (("--out", out), ("--scenes", scenes_dir), ("--episodes", episodes)):
+        if value is not None and not str(value).strip():
+            raise UserError(f"{name} is empty: expected a path")
+    own_scenes = loaded.from_run and scenes_dir is None
+    scenes_dir = scenes_dir if scenes_dir is not None else loaded.scenes_dir
     tag = Path(scenes_dir).name if scenes_dir else loaded.scene_preset
-    out = Path(out or f"runs/eval/{loaded.name}-{tag}-{split}.json")
-    check_output_file(out, is_results_json, RESULTS)
+    if out is None:
+        out = (f"runs/eval/{loaded.name}-{split}.json" if own_scenes
+               else f"runs/eval/{loaded.name}-{tag}-{split}.json")
+    out = Path(out)
     ep_out = out.with_name(f"episodes-{tag}-{split}-seed{episode_seed}.json")
+    check_output_file(out, is_results_json, RESULTS,
+                      inputs=(episodes, None if episodes else ep_out))
     if not episodes:      # a sampled set is saved beside the results
         check_output_file(ep_out, is_episode_file, EPISODE_FILE,
                           option="the episode file beside --out")
@@ -135,7 +158,8 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
               disable=not progress, file=sys.stderr) as bar:
         result = evaluation.evaluate(loaded.policy, loaded.params, scenes, episode_set,
                                      env.EnvParams.evaluation(), seed=seed,
-                                     batch_size=batch_size or loaded.batch_size,
+                                     batch_size=(batch_size if batch_size is not None
+                                                 else loaded.batch_size),
                                      progress=bar.update)
     result.update({"policy": loaded.name, "split": split, "scenes": tag,
                    "episode_file": str(ep_path), "out": str(out)})

@@ -3,8 +3,8 @@
     python -m orgnav_jax.evaluate --policy random --split test
     python -m orgnav_jax.evaluate --policy expert --split val --scene-preset tiny
     python -m orgnav_jax.evaluate --episodes runs/eval/episodes-small-test.json ...
-    python -m orgnav_jax.evaluate --checkpoint runs/baseline-small --split test
-    python -m orgnav_jax.evaluate --tpn runs/baseline-small/tpn --when all   # TPN-all
+    python -m orgnav_jax.evaluate --checkpoint runs/small --split test
+    python -m orgnav_jax.evaluate --tpn runs/small/tpn --when all   # TPN-all
 
 The episode set is sampled with --episode-seed (250 per room type) and written next to
 the results, or replayed from --episodes. Results: a JSON file (overall, per room type,
@@ -20,7 +20,7 @@ import sys
 from orgnav_jax import api, evaluation
 from orgnav_jax.api import is_results_json  # noqa: F401  (the results-file test)
 from orgnav_jax.constants import EPISODES_PER_ROOM_TYPE
-from orgnav_jax.errors import run_cli
+from orgnav_jax.errors import UserError, run_cli
 from orgnav_jax.safe_write import check_output_file
 
 POLICIES = ("expert", "random")
@@ -28,8 +28,12 @@ POLICIES = ("expert", "random")
 
 def print_results(name: str, result: dict) -> None:
     """Table-1 metrics overall and per room type, then the failure analysis (how the
-    episodes ended, revisits and failed moves per episode; docs/evaluation.md)."""
-    print(evaluation.format_table({name: result["overall"]}))
+    episodes ended, revisits and failed moves per episode; docs/evaluation.md), under a
+    title naming the split."""
+    split = result.get("split", "?")
+    print(evaluation.format_table({name: result["overall"]}, title=(
+        f"{split} split, {result['overall']['episodes']} episodes"
+        f"{' (unseen rooms)' if split in ('val', 'test') else ''}:")))
     print()
     print(evaluation.format_table(result["per_room_type"], title="per room type:"))
     print()
@@ -68,8 +72,10 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> dict:
     """Parse, evaluate (api.evaluate), print the tables -> the results dict."""
     args = parser().parse_args(argv)
-    if args.out:     # a bad --out fails before anything loads
-        check_output_file(args.out, is_results_json, api.RESULTS)
+    if args.out is not None:     # a bad --out fails before anything loads
+        if not args.out.strip():
+            raise UserError("--out is empty: expected a path")
+        check_output_file(args.out, is_results_json, api.RESULTS, inputs=(args.episodes,))
     from orgnav_jax.tpn.config import tpn_overrides_from_args
     loaded = api.load_policy(policy=args.policy, run_dir=args.checkpoint, tpn_dir=args.tpn,
                              **tpn_overrides_from_args(args))

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import re
 import sys
 from collections.abc import Iterable, Mapping, Sequence
@@ -45,6 +44,7 @@ import numpy as np
 
 from orgnav_jax.constants import CATEGORIES, CATEGORY_INDEX, TARGETS
 from orgnav_jax.errors import run_cli
+from orgnav_jax.safe_write import check_output_file, is_own_png, write_png
 from orgnav_jax.scenes.catalog import ANCHORS
 
 
@@ -130,12 +130,25 @@ def format_report(rep: dict) -> str:
 
 
 def save_png(fig, out: Path, dpi: int = 120) -> Path:
-    """Write a figure (its folder created, tight bounding box) and close it -> out."""
+    """Write a figure (safe_write.write_png: atomic, marked as ours, never over a file we
+    did not write) and close it -> out."""
     import matplotlib.pyplot as plt
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=dpi, bbox_inches="tight")
-    plt.close(fig)
-    return out
+    try:
+        return write_png(fig, out, dpi)
+    finally:
+        plt.close(fig)
+
+
+def default_out(run_dir: str | Path, name: str, out: str | Path | None) -> Path:
+    """The one rule of the picture commands: --out, else RUN_DIR/NAME (the first run's
+    directory for curves), checked before any work (write_png's rules)."""
+    if out is not None and not str(out).strip():
+        raise ValueError("--out is empty: expected a .png path")
+    path = Path(out) if out is not None else Path(run_dir) / name
+    if path.suffix.lower() != ".png":
+        raise ValueError(f"--out {path}: expected a .png path (pictures are PNG files)")
+    check_output_file(path, is_own_png, "a PNG written by orgnav_jax")
+    return path
 
 
 def plot_adjacency(A, path, title: str = "ORG adjacency A", mark_pairs: bool = True) -> Path:
@@ -245,21 +258,17 @@ def read_val_curve(run_dir: str | Path, metrics: Sequence[str]) -> dict[str, np.
     path = run_dir / "metrics.jsonl"
     if not path.is_file():
         raise CurveError(f"{path}: missing (not a training run directory?)")
-    text = path.read_text()
-    if not text.strip():
+    from orgnav_jax.training.run_dir import read_metrics
+    if not path.read_text().strip():
         raise CurveError(f"{path}: empty (the run has not logged anything yet)")
+    try:
+        records = read_metrics(run_dir)          # the typed reader of metrics.jsonl
+    except ValueError as err:
+        raise CurveError(str(err)) from None
     by_step: dict[int, dict] = {}
-    for n, line in enumerate(text.splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            raise CurveError(f"{path} line {n}: not valid JSON") from None
-        if isinstance(rec, dict) and rec.get("kind") == "val":
-            if "env_steps" not in rec:
-                raise CurveError(f"{path} line {n}: a val record without env_steps")
-            by_step[int(rec["env_steps"])] = rec
+    for rec in records:
+        if rec["kind"] == "val":
+            by_step[rec["env_steps"]] = rec
     if not by_step:
         raise CurveError(f"{path}: no val records (kind 'val') yet")
     steps = sorted(by_step)
@@ -360,7 +369,9 @@ def plot_curves(run_dirs: Iterable[str | Path] | Mapping[str, Sequence[str | Pat
         ax.set_xlabel("env steps")
         name = LABELS.get(m, m)
         ax.set_ylabel(f"val {name}" + (" (%)" if m in PERCENT else ""))
-        ax.set_title(f"val {name}: mean over seeds, band = {BANDS[band]}", fontsize=10)
+        seeds = {d[m]["seeds"] for d in data.values()}
+        ax.set_title(f"val {name}: one seed per row" if seeds == {1} else
+                     f"val {name}: mean over seeds, band = {BANDS[band]}", fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
@@ -548,7 +559,7 @@ def main(argv=None) -> int:
     c.add_argument("runs", nargs="+", metavar="RUN_DIR",
                    help="training run directories (or ROW=RUN_DIR); NAME-s<seed> -> row NAME")
     c.add_argument("--out", default=None,
-                   help="PNG path (default: curves.png beside the first run directory)")
+                   help="PNG path (default: FIRST_RUN_DIR/curves.png)")
     c.add_argument("--metrics", nargs="+", default=["success", "spl"],
                    help="val record fields, one panel each (default: success spl)")
     c.add_argument("--band", choices=sorted(BANDS), default="minmax",
@@ -558,11 +569,13 @@ def main(argv=None) -> int:
         from orgnav_jax.tpn.config import tpn_overrides_from_args
         kw = dict(episodes_file=args.episodes, test_time=tpn_overrides_from_args(args))
     if args.cmd == "episode":
-        out = plot_episode(args.run_dir, args.episode, args.split, args.out, **kw)
+        out = default_out(args.run_dir, f"episode-{args.episode}.png", args.out)
+        out = plot_episode(args.run_dir, args.episode, args.split, out, **kw)
         print(f"wrote {out}")
         return 0
     if args.cmd == "tpn-attention":
-        out, att = plot_tpn_attention(args.run_dir, args.episode, args.split, args.out,
+        out = default_out(args.run_dir, f"tpn-attention-{args.episode}.png", args.out)
+        out, att = plot_tpn_attention(args.run_dir, args.episode, args.split, out,
                                       args.step, **kw)
         w = att["attention"][att["step"]]
         top = [f"{i} ({w[i]:.2f})" for i in np.argsort(-w)[:3] if w[i] > 0]
@@ -572,7 +585,7 @@ def main(argv=None) -> int:
         return 0
     if args.cmd == "curves":
         rows = group_runs(args.runs)
-        out = Path(args.out) if args.out else next(iter(rows.values()))[0].parent / "curves.png"
+        out = default_out(next(iter(rows.values()))[0], "curves.png", args.out)
         try:
             plot_curves(rows, out, args.metrics, args.band)
         except CurveError as e:
@@ -580,12 +593,12 @@ def main(argv=None) -> int:
             return 2
         print(f"wrote {out}")
         return 0
+    out = default_out(args.run_dir, "adjacency.png", args.out)
     try:
         A, name = run_adjacency(args.run_dir, best=not args.latest)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    out = Path(args.out) if args.out else Path(args.run_dir) / "adjacency.png"
     title = f"{'learned ORG adjacency' if name == 'org' else 'D-SP prior graph'}: {args.run_dir}"
     plot_adjacency(A, out, title)
     print(f"wrote {out}")

@@ -2,8 +2,8 @@
 
     python -m orgnav_jax.train                               # baseline, small benchmark
     python -m orgnav_jax.train --preset small --model we --run-dir runs/we
-    python -m orgnav_jax.train --run-dir runs/baseline-small --resume
-    python -m orgnav_jax.train --stage tpn --base runs/baseline-small   # stage 2: TPN
+    python -m orgnav_jax.train --run-dir runs/small --resume
+    python -m orgnav_jax.train --stage tpn --base runs/small   # stage 2: TPN
     python -m orgnav_jax.train --preset full      # ORG + IL, then its TPN: the full model
 
 With no arguments it builds (or reuses) the small synthetic benchmark, trains the
@@ -64,6 +64,9 @@ def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
     procs.add_argument("--distributed", action="store_true",
                        help="jax.distributed.initialize() with the launcher's settings "
                             "(Slurm, Open MPI, or JAX_COORDINATOR_ADDRESS etc.)")
+    procs.add_argument("--distributed-timeout", type=int, default=None, metavar="S",
+                       help="seconds to wait for the coordinator and the other processes "
+                            "(default 300), then stop with an error")
     return ap
 
 
@@ -72,8 +75,8 @@ RESUME_OPTIONS = {"run_dir", "total_env_steps", "scenes_dir", "devices"}
 RESUME_TPN_OPTIONS = {"run_dir", "total_episodes", "base_dir"}
 
 # presets that run both stages: the navigation preset, then its TPN, evaluated with the
-# test-time learning rate chosen on val on the small benchmark (README, Tables 1-2)
-TPN_PIPELINES = {"baseline_tpn": ("baseline", 1e-3), "full": ("org_il", 1e-3)}
+# test-time learning rate chosen on val (tpn.config.TPN_LR; README, Tables 1-2)
+TPN_PIPELINES = {"baseline_tpn": "baseline", "full": "org_il"}
 
 
 def parser() -> argparse.ArgumentParser:
@@ -82,7 +85,8 @@ def parser() -> argparse.ArgumentParser:
                     help="a training preset; baseline_tpn and full (ORG + IL + TPN) also train "
                          "the TPN (stage 2) on the result")
     ap.add_argument("--tpn-lr", type=float, default=None,
-                    help="baseline_tpn / full: test-time learning rate (default 1e-3)")
+                    help="baseline_tpn / full: test-time learning rate (default: the one "
+                         "val chose, 1e-3; 0: no test-time update)")
     ap.add_argument("--tpn-episodes", type=int, default=None,
                     help="baseline_tpn / full: stage-2 training episodes (default 40000)")
     ap.add_argument("--seeds", type=int, nargs="+", default=None, metavar="SEED",
@@ -129,10 +133,16 @@ def main_tpn(argv: list[str]) -> dict:
 def start_processes(args) -> int:
     """jax.distributed.initialize when asked (before anything touches a device) -> the
     number of processes."""
-    from orgnav_jax.training.scale import init_distributed
+    from orgnav_jax.training.scale import DISTRIBUTED_TIMEOUT_S, init_distributed
+    timeout = args.distributed_timeout
+    if timeout is not None and timeout < 1:
+        raise UserError(f"--distributed-timeout {timeout}: expected an integer >= 1 (seconds)")
+    if args.coordinator is not None and not args.coordinator.strip():
+        raise UserError("--coordinator is empty: expected HOST:PORT")
     init_distributed(args.coordinator, args.num_processes, args.process_id,
-                     auto=args.distributed)
-    if args.coordinator or args.distributed:
+                     auto=args.distributed,
+                     timeout_s=DISTRIBUTED_TIMEOUT_S if timeout is None else timeout)
+    if args.coordinator is not None or args.distributed:
         import jax
         return jax.process_count()
     return 1
@@ -187,7 +197,7 @@ def nav_config(args, processes: int = 1):
     together."""
     overrides = overrides_from_args(args)
     pipeline = TPN_PIPELINES.get(args.preset)
-    if (args.tpn_lr or args.tpn_episodes) and not pipeline:
+    if (args.tpn_lr is not None or args.tpn_episodes is not None) and not pipeline:
         raise UserError(f"--tpn-lr and --tpn-episodes go with the presets "
                         f"{sorted(TPN_PIPELINES)}")
     if args.seeds is not None and "seed" in overrides:
@@ -198,15 +208,32 @@ def nav_config(args, processes: int = 1):
         overrides["total_env_steps"] = BUDGETS[args.budget].env_steps
     if processes > 1 and pipeline:
         raise UserError(f"--preset {args.preset} trains the TPN too, which runs in one "
-                        f"process: train --preset {pipeline[0]} on several processes, then "
+                        f"process: train --preset {pipeline} on several processes, then "
                         "--stage tpn --base RUN_DIR in one")
     if args.resume and "run_dir" in overrides and not (set(overrides) - RESUME_OPTIONS):
         # resume with the saved config, in the directory given (a copied or moved run);
         # the budget may be extended, the scenes moved and the devices changed
         return api.resume_config(seeds=args.seeds, **overrides)
     if pipeline:
-        overrides.setdefault("run_dir", f"runs/{args.preset}-small")
-    return get_config(pipeline[0] if pipeline else args.preset, **overrides)
+        overrides.setdefault("run_dir", f"runs/{args.preset}")
+    return get_config(pipeline or args.preset, **overrides)
+
+
+def pipeline_tpn_fields(args) -> dict:
+    """The TPN fields of a both-stages preset (--tpn-lr, --tpn-episodes or --budget),
+    validated before stage 1 trains: ValueError naming the field otherwise."""
+    from orgnav_jax.tpn.config import get_tpn_config
+    fields = {} if args.tpn_lr is None else {"tpn_lr": args.tpn_lr}
+    episodes = args.tpn_episodes if args.tpn_episodes is not None else (
+        BUDGETS[args.budget].tpn_episodes if args.budget else None)
+    if episodes is not None:
+        fields["total_episodes"] = episodes
+    try:
+        get_tpn_config(base_dir="(the stage-1 run)", **fields)
+    except ValueError as err:
+        raise UserError(str(err).replace("TPN config field 'tpn_lr'", "--tpn-lr")
+                        .replace("TPN config field 'total_episodes'", "--tpn-episodes"))
+    return fields
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -217,6 +244,7 @@ def main(argv: list[str] | None = None) -> dict:
         return main_tpn(argv)
     args = parser().parse_args(argv)
     pipeline = TPN_PIPELINES.get(args.preset)
+    tpn_fields = pipeline_tpn_fields(args) if pipeline else {}      # before any work
     cfg = nav_config(args, processes=start_processes(args))
     seeds = f", seeds {' '.join(map(str, args.seeds))} in one program" if args.seeds else ""
     announce(cfg, f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {cfg.num_envs} envs "
@@ -231,12 +259,8 @@ def main(argv: list[str] | None = None) -> dict:
                             cfg.run_dir, args)]
     if pipeline:
         from orgnav_jax.tpn.config import get_tpn_config
-        fields = {"tpn_lr": args.tpn_lr or pipeline[1]}
-        episodes = args.tpn_episodes or (BUDGETS[args.budget].tpn_episodes if args.budget
-                                         else None)
-        fields.update({"total_episodes": episodes} if episodes else {})
         for summary in summaries:
-            tpn_cfg = get_tpn_config(base_dir=summary["run_dir"], **fields)
+            tpn_cfg = get_tpn_config(base_dir=summary["run_dir"], **tpn_fields)
             summary["tpn"] = run_tpn_stage(
                 tpn_cfg, args.resume and is_run_dir(tpn_cfg.run_dir), args)
     return summaries[0] if args.seeds is None else {"runs": summaries}

@@ -251,7 +251,7 @@ def test_run_table_shows_failure_columns_and_dashes_for_old_results(tmp_path):
     head, _, baseline, il = text.splitlines()
     assert head.split(" | ")[-4:] == ["wrong Done", "timeout", "revisits/ep",
                                       "failed moves/ep |"]
-    assert baseline.split(" | ")[-4:] == ["30.0 ± 5.0", "30.0 ± 5.0", "4.0 ± 1.0",
-                                          "1.5 ± 0.0 |"]
+    assert baseline.split(" | ")[-4:] == ["30.0 ± 7.1", "30.0 ± 7.1", "4.0 ± 1.4",
+                                          "1.5 ± 0.0 |"]          # sample std (ddof 1)
     assert il.split(" | ")[-4:] == ["-", "-", "-", "- |"]
     assert (tmp_path / "table.md").read_text() == text

@@ -85,7 +85,7 @@ def test_curves_cli_default_out_options_and_resumed_runs(runs, tmp_path, capsys)
     again = json.dumps({"kind": "val", "env_steps": 300, "success": 0.8, "spl": 0.4}) + "\n"
     write_run(tmp_path / "runs" / "il-s1", *VAL["il-s1"], extra=[again])
     assert plots.main(["curves", *map(str, runs), "--band", "std"]) == 0
-    out = tmp_path / "runs" / "curves.png"
+    out = runs[0] / "curves.png"                        # the first run directory
     assert out.stat().st_size > 5000
     text = capsys.readouterr().out
     assert f"wrote {out}" in text

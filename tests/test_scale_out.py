@@ -434,15 +434,19 @@ def test_bfloat16_computes_in_bf16_with_float32_parameters(tmp_path, tiny_dir, m
 
 @pytest.mark.slow
 def test_bfloat16_training_beats_random_on_the_val_rooms(tmp_path, tiny_dir):
-    """~1-2 minutes: the baseline trained in bf16 for 100 k env steps on the tiny training
-    rooms succeeds at least twice as often as random on the unseen val rooms."""
+    """~1-2 minutes: the baseline trained in bf16 for 400 k env steps on the tiny training
+    rooms, seeds 0-2 in one program, succeeds on the unseen val rooms at least twice as
+    often as random, on average over the seeds. (One seed is a draw: on an AVX-512 BF16
+    CPU seed 0 reached 0.072 and float32's seed 1 0.065 on test, docs/scale_out.md.)"""
     from orgnav_jax.training import loop
     from orgnav_jax.training.config import get_config
     cfg = get_config("tiny", scenes_dir=tiny_dir, run_dir=str(tmp_path / "run"),
-                     total_env_steps=102_400, dtype="bfloat16")
-    loop.train(cfg, progress=False)
-    trained, rand = trained_and_random_success(tmp_path / "run", tiny_dir, "val")
-    assert trained >= 2 * rand and trained > 0.05, (trained, rand)
+                     total_env_steps=400_000, dtype="bfloat16")
+    loop.train_seeds(cfg, [0, 1, 2], progress=False)
+    results = [trained_and_random_success(tmp_path / f"run-s{s}", tiny_dir, "val")
+               for s in range(3)]
+    trained, rand = np.mean([t for t, _ in results]), results[0][1]
+    assert trained >= 2 * rand and trained > 0.05, results
 
 
 # ------------------------------------------------------------------ config fields

@@ -3,6 +3,7 @@
     python -m orgnav_jax.scenes build --preset small --out data/small [--seed 0]
     python -m orgnav_jax.scenes build --preset large --num-rooms 10 --out data/large10
     python -m orgnav_jax.scenes info data/small
+    python -m orgnav_jax.scenes info small            # a preset's cached set (built if new)
     python -m orgnav_jax.scenes show 201 [--seed 0] [--room-sizes thor]  # ASCII top view
     python -m orgnav_jax.scenes import --offline-dir DIR --out data/thor   # authors' data
     python -m orgnav_jax.scenes export --preset tiny --out out/offline     # to their format
@@ -15,6 +16,7 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 from orgnav_jax.errors import run_cli
 from orgnav_jax.safe_write import check_output_dir
@@ -47,7 +49,9 @@ def main(argv: list[str] | None = None) -> int:
                    "(default: the preset's)")
     b.add_argument("--json", action="store_true", help="also print the summary as JSON")
     i = sub.add_parser("info", help="summarize a saved benchmark")
-    i.add_argument("path")
+    i.add_argument("path", help="a SceneSet directory, or a preset name for its cached set "
+                   "($ORGNAV_CACHE or ~/.cache/orgnav_jax/scenes-PRESET-seedSEED-vFORMAT)")
+    i.add_argument("--seed", type=int, default=0, help="with a preset name: its scene seed")
     i.add_argument("--json", action="store_true")
     s = sub.add_parser("show", help="print the ASCII top view of one generated room")
     s.add_argument("floorplan", type=int, help="AI2-THOR number, e.g. 1, 201, 301, 401")
@@ -89,8 +93,17 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "convert":
         summary = _convert(args)
     elif args.command == "info":
-        summary = summarize(load(args.path, mmap=True))
-        summary.update(disk_mb=disk_size(args.path) / 2**20)
+        path = args.path
+        if not Path(path).exists() and path in SCENE_PRESETS:
+            from orgnav_jax.scenes.cache import cache_path, load_or_build
+            load_or_build(path, args.seed)           # built on first use, as training does
+            path = str(cache_path(path, args.seed))
+            print(f"preset {args.path}, seed {args.seed}: {path}")
+        elif not Path(path).exists():
+            raise FileNotFoundError(f"no SceneSet at {path}: expected a SceneSet directory "
+                                    f"or a preset name ({', '.join(sorted(SCENE_PRESETS))})")
+        summary = summarize(load(path, mmap=True))
+        summary.update(disk_mb=disk_size(path) / 2**20)
     else:
         print(render_ascii(generate_room(args.seed, args.floorplan,
                                          room_sizes=args.room_sizes)))

@@ -1,7 +1,7 @@
 """TPN configuration: stage-2 training and the test-time update, one frozen dataclass.
 
-    cfg = get_tpn_config(base_dir="runs/baseline-small")     # defaults, run_dir base/tpn
-    cfg = load_tpn_config("runs/baseline-small/tpn")         # a stage-2 run's config
+    cfg = get_tpn_config(base_dir="runs/small")     # defaults, run_dir base/tpn
+    cfg = load_tpn_config("runs/small/tpn")         # a stage-2 run's config
 Every field is a command-line option (add_tpn_arguments: `--base DIR`, `--scope trunk`).
 """
 
@@ -27,6 +27,11 @@ SCOPES, DETECTORS, WHEN, TARGETS, ACTS = (get_args(t) for t in (Scope, Detector,
                                                                  Target, Act))
 
 
+# The test-time learning rate val chose for both bases (Baseline and ORG + IL; the
+# sweeps and their val numbers: experiments/results/val_choices, docs/results.md).
+TPN_LR = 1e-3
+
+
 # The TPN's settings by concern. TPNConfig below is their one flat surface (config.json,
 # command-line options); each consumer takes only its part: the network's widths
 # (build_tpn), the deadlock detector (tpn/deadlock.py), the test-time update (the
@@ -50,7 +55,7 @@ class DeadlockMemory:
 @dataclasses.dataclass(frozen=True)
 class TestTime:
     """What the test-time policy reads: the update and its deadlock detector."""
-    tpn_lr: float = 1e-4
+    tpn_lr: float = TPN_LR
     scope: Scope = "all"
     when: When = "deadlock"
     target: Target = "tpn"
@@ -87,7 +92,7 @@ class TPNConfig:
     seed: int = 0
     run_dir: str = ""                 # default: <base_dir>/tpn
     # test time (evaluation with --tpn)
-    tpn_lr: float = 1e-4              # one SGD step per update step
+    tpn_lr: float = TPN_LR            # one SGD step per update step (chosen on val)
     scope: Scope = "all"                # all (the release's) | trunk (above the encoder) | actor
     when: When = "deadlock"
     target: Target = "tpn"

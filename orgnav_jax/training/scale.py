@@ -26,6 +26,8 @@ written by all processes together.
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 import jax
@@ -39,11 +41,16 @@ BATCH_FIELDS = ("env_state", "carry", "fresh", "ep_return")
 
 
 # --------------------------------------------------------------------------- processes
+DISTRIBUTED_TIMEOUT_S = 300       # jax.distributed's own default, now said out loud
+
+
 def init_distributed(coordinator: str | None = None, num_processes: int | None = None,
-                     process_id: int | None = None, auto: bool = False) -> None:
-    """jax.distributed.initialize with the given coordinator (HOST:PORT), process count
-    and id; auto=True lets JAX detect them (Slurm, Open MPI, TPU pods, or the environment
-    variables JAX_COORDINATOR_ADDRESS, ...). Must run before anything touches a device."""
+                     process_id: int | None = None, auto: bool = False,
+                     timeout_s: int = DISTRIBUTED_TIMEOUT_S) -> None:
+    """jax.distributed.initialize with the given coordinator (HOST:PORT, validated), process
+    count and id; auto=True lets JAX detect them (Slurm, Open MPI, TPU pods, or the
+    environment variables JAX_COORDINATOR_ADDRESS, ...). Prints what it waits for and
+    gives up after timeout_s with a UserError. Must run before anything touches a device."""
     given = [x is not None for x in (coordinator, num_processes, process_id)]
     if any(given) and not all(given):
         raise UserError("--coordinator, --num-processes and --process-id go together "
@@ -51,14 +58,64 @@ def init_distributed(coordinator: str | None = None, num_processes: int | None =
     if not (any(given) or auto):
         return
     if all(given):
-        if ":" not in coordinator:
-            raise UserError(f"--coordinator {coordinator!r}: expected HOST:PORT")
+        host, port = check_coordinator(coordinator)
         if num_processes < 1 or not 0 <= process_id < num_processes:
             raise UserError(f"--process-id {process_id} --num-processes {num_processes}: "
                             "expected 0 <= process id < number of processes")
-        jax.distributed.initialize(coordinator, num_processes, process_id)
+        print(f"waiting up to {timeout_s} s for the coordinator at {coordinator} and "
+              f"{num_processes} process(es) ...", file=sys.stderr, flush=True)
+        if process_id > 0:       # XLA's runtime aborts the process when it gives up
+            wait_for_port(host, port, timeout_s)
+        _initialize(f"the coordinator at {coordinator} and {num_processes} processes",
+                    timeout_s, coordinator, num_processes, process_id)
     else:
-        jax.distributed.initialize()
+        print(f"waiting up to {timeout_s} s for the launcher's processes ...",
+              file=sys.stderr, flush=True)
+        _initialize("the processes the launcher (Slurm, Open MPI, JAX_COORDINATOR_ADDRESS) "
+                    "names", timeout_s)
+
+
+def check_coordinator(address: str) -> tuple[str, int]:
+    """--coordinator HOST:PORT (HOST a name, IPv4 or [IPv6]; PORT 1-65535) -> (host, port);
+    UserError otherwise (XLA's runtime crashes on a malformed address)."""
+    host, sep, port = str(address).rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    ok_host = bool(host) and all(c.isalnum() or c in ".-_:" for c in host)
+    if not sep or not ok_host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise UserError(f"--coordinator {address!r}: expected HOST:PORT with a port "
+                        "1-65535 (e.g. node0:12345 or 10.0.0.1:12345)")
+    return host, int(port)
+
+
+def wait_for_port(host: str, port: int, timeout_s: float) -> None:
+    """Until the coordinator's port accepts a connection; UserError after timeout_s."""
+    import socket
+    import time
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            socket.create_connection((host, port), timeout=2).close()
+            return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise UserError(f"the coordinator at {host}:{port} did not answer within "
+                                f"{timeout_s:g} s (is process 0 running, and this address "
+                                "reachable?)") from None
+            time.sleep(0.5)
+
+
+def _initialize(what: str, timeout_s: int, *args) -> None:
+    """jax.distributed.initialize(*args) with a timeout; UserError naming what it waited
+    for when the runtime gives up."""
+    try:
+        jax.distributed.initialize(*args, initialization_timeout=timeout_s)
+    except Exception as err:                      # noqa: BLE001 (XLA's runtime errors)
+        if isinstance(err, UserError):
+            raise
+        text = " ".join(str(err).split())[:300]
+        raise UserError(f"jax.distributed could not reach {what} within {timeout_s} s "
+                        f"({type(err).__name__}: {text})") from None
 
 
 def is_primary() -> bool:

@@ -61,9 +61,9 @@ def add_parsers(sub) -> None:
 
 
 def _rows(args):
-    if args.detection_classes and args.detection_rows:
+    if args.detection_classes is not None and args.detection_rows is not None:
         raise OfflineFormatError("give --detection-classes or --detection-rows, not both")
-    if args.detection_classes:
+    if args.detection_classes is not None:
         path = Path(args.detection_classes)
         try:
             names = json.loads(path.read_text())
@@ -77,8 +77,12 @@ def _rows(args):
             raise OfflineFormatError(f"--detection-classes {path}: expected a JSON list of "
                                      "class names in row order")
         return names
-    if args.detection_rows:
-        return [r.strip() for r in args.detection_rows.split(",")]
+    if args.detection_rows is not None:
+        rows = [r.strip() for r in args.detection_rows.split(",")]
+        if not all(rows):
+            raise OfflineFormatError(f"--detection-rows {args.detection_rows!r}: expected "
+                                     "comma-separated class names, none empty")
+        return rows
     return None
 
 
@@ -108,6 +112,9 @@ def _export(args) -> int:
     from orgnav_jax.offline_episodes import write_offline_episodes
     from orgnav_jax.scenes.offline.exporter import check_export_dir, export_offline
     from orgnav_jax.scenes.storage import load
+    if args.episodes_per_type < 0:
+        raise OfflineFormatError(f"--episodes-per-type {args.episodes_per_type}: expected an "
+                                 "integer >= 0 (0: no episode files)")
     check_export_dir(args.out)  # before building: refuse a folder that is not ours
     if args.source:
         scenes = load(args.source, mmap=True)
@@ -121,7 +128,7 @@ def _export(args) -> int:
             raise OfflineFormatError(f"--scenes: {missing} not in this SceneSet ({names[:4]}...)")
         scenes = scenes.select([names.index(n) for n in args.scenes])
     report = export_offline(scenes, args.out, hdf5_dtype=args.hdf5_dtype, progress=True)
-    if args.episodes_per_type:
+    if args.episodes_per_type > 0:
         report["episodes"] = {}
         for k, split in enumerate(SPLITS):
             if not (np.asarray(scenes.split) == k).any():
