@@ -25,6 +25,7 @@ import numpy as np
 from orgnav_jax.constants import (  # noqa: F401  (EPISODES_PER_ROOM_TYPE re-exported)
     CATEGORIES, EPISODES_PER_ROOM_TYPE, ROOM_TYPES, category_index,
 )
+from orgnav_jax.errors import read_int, read_str
 from orgnav_jax.safe_write import write_text_atomic
 from orgnav_jax.scenes.keys import key_index, state_key
 from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet
@@ -142,6 +143,10 @@ def from_records(records: list[dict], scenes: SceneSet, source: str = "episodes"
         if missing:
             raise ValueError(f"{where} lacks field(s) {missing}: expected 'scene', "
                              "'goal_object_type' and 'state'")
+        for key in ("scene", "goal_object_type", "state"):
+            read_str(rec, key, where)
+        if "optimal_len" in rec:
+            read_int(rec, "optimal_len", where)
         if rec["scene"] not in names:
             raise ValueError(f"{where} names scene {rec['scene']!r}, which is not in this "
                              f"SceneSet ({len(names)} scenes, e.g. {list(names)[:3]}); "
@@ -205,7 +210,10 @@ def is_episode_file(path: str | os.PathLike) -> bool:
 
 def load_episodes(path: str | os.PathLike, scenes: SceneSet) -> EpisodeSet:
     """Read an episode file written by save_episodes (or a bare list of authors'
-    records) and map it onto `scenes`; clear errors if it does not fit them."""
+    records) and map it onto `scenes`; clear errors if it does not fit them. The typed
+    reader of episode files: an object {"format", "split": "" or a split name, "seed":
+    int32 >= 0, "episodes": [records]} (or a bare list of records); each record's fields
+    typed by from_records. One-line ValueErrors name the file, the episode and field."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"episode file {path} does not exist")
@@ -233,6 +241,9 @@ def load_episodes(path: str | os.PathLike, scenes: SceneSet) -> EpisodeSet:
                          f"(format {FORMAT}) or a list of episodes")
     if "format" in doc and doc["format"] != FORMAT:
         raise ValueError(f"episode file {path}: format {doc['format']!r}, expected {FORMAT!r}")
-    episodes, _ = from_records(doc["episodes"], scenes, source=f"episode file {path}",
-                               split=doc.get("split", ""), seed=int(doc.get("seed", 0)))
+    source = f"episode file {path}"
+    split = read_str(doc, "split", source, choices=("", "train", "val", "test"), default="")
+    seed = read_int(doc, "seed", source, default=0)
+    episodes, _ = from_records(doc["episodes"], scenes, source=source, split=split,
+                               seed=seed)
     return episodes

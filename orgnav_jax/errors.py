@@ -62,3 +62,100 @@ def choose(options: dict, value, what: str):
     except (KeyError, TypeError):
         raise ValueError(f"unknown {what} {value!r}: expected one of "
                          f"{sorted(map(str, options))}") from None
+
+
+# ------------------------------------------------------------------ typed readers
+# Every file the program reads back goes through one reader (docs/reliability.md, "Typed
+# readers"); these helpers give their errors one form:
+#     <file>: field <name>: expected <what>, got <value>
+
+INT32_MAX = 2 ** 31 - 1
+FLOAT_MAX = 1.7976931348623157e308
+
+
+def shown(value, limit: int = 60) -> str:
+    """repr(value), shortened to `limit` characters (a message stays one short line)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def field_error(source, field, expected: str, value) -> ValueError:
+    """ValueError('<source>: field <field>: expected <expected>, got <value>')."""
+    return ValueError(f"{source}: field {field!r}: expected {expected}, got {shown(value)}")
+
+
+def is_int(value) -> bool:
+    """A JSON integer: int, not bool."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def is_number(value) -> bool:
+    """A JSON number that is a finite float: int or float, not bool, not inf/nan and not
+    an integer too large for a float."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return abs(float(value)) <= FLOAT_MAX
+    except OverflowError:
+        return False
+
+
+def read_object(value, source, what: str = "a JSON object") -> dict:
+    """`value` if it is a dict (a JSON object), else ValueError naming `source`."""
+    if not isinstance(value, dict):
+        raise ValueError(f"{source}: expected {what}, got {_kind(value)}")
+    return value
+
+
+def _kind(value) -> str:
+    return {dict: "an object", list: "a list", str: "a string", bool: "a boolean",
+            type(None): "null", int: "an integer", float: "a number"}.get(
+        type(value), type(value).__name__)
+
+
+_MISSING = object()
+
+
+def read_field(doc: dict, field: str, source, *, default=_MISSING):
+    """doc[field], or `default` when given and the field is absent; ValueError naming
+    the file and the field when a required field is missing."""
+    if field in doc:
+        return doc[field]
+    if default is not _MISSING:
+        return default
+    raise ValueError(f"{source}: field {field!r} is missing")
+
+
+def read_int(doc: dict, field: str, source, *, lo: int | None = 0, hi: int | None = INT32_MAX,
+             default=_MISSING) -> int:
+    """An integer field within [lo, hi] (default: a non-negative int32)."""
+    if field not in doc and default is not _MISSING:
+        return default
+    value = read_field(doc, field, source)
+    if not is_int(value) or (lo is not None and value < lo) or (hi is not None and value > hi):
+        span = (f"{lo:,} <= {field} <= {hi:,}" if lo is not None and hi is not None else
+                f"{field} >= {lo:,}" if lo is not None else f"{field} <= {hi:,}")
+        raise field_error(source, field, f"an integer {span}" if lo is not None or
+                          hi is not None else "an integer", value)
+    return value
+
+
+def read_number(doc: dict, field: str, source, *, default=_MISSING) -> float:
+    """A finite number field -> float."""
+    if field not in doc and default is not _MISSING:
+        return default
+    value = read_field(doc, field, source)
+    if not is_number(value) or value != value:
+        raise field_error(source, field, "a finite number", value)
+    return float(value)
+
+
+def read_str(doc: dict, field: str, source, *, choices=None, default=_MISSING) -> str:
+    """A string field (one of `choices` when given)."""
+    if field not in doc and default is not _MISSING:
+        return default
+    value = read_field(doc, field, source)
+    if not isinstance(value, str) or (choices is not None and value not in choices):
+        raise field_error(source, field, f"one of {list(choices)}" if choices is not None
+                          else "a string", value)
+    return value

@@ -39,6 +39,7 @@ from orgnav_jax import env
 from orgnav_jax.compile_cache import compiled_once
 from orgnav_jax.constants import CATEGORIES, NUM_ACTIONS, ROOM_TYPES
 from orgnav_jax.episodes import EpisodeSet
+from orgnav_jax.models.navmodel import check_feature_widths, feature_widths
 from orgnav_jax.scenes.sceneset import SceneSet
 from orgnav_jax.tree import where_rows
 
@@ -123,12 +124,23 @@ def trace_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: Ep
     the outcome per episode (E,) as run_episodes, and per step (E, T, ...): state (the
     flat state before the step), action, deadlock, running, and what policy.record keeps
     (its trailing axes too)."""
+    check_scenes(policy, policy_params, scenes)
     arrays = [jnp.asarray(a) for a in (episodes.scene, episodes.start, episodes.target)]
     res = _run_batch(policy, policy_params, scenes, *arrays, jax.random.PRNGKey(seed),
                      params, max(params.step_caps), trace=True)
     out = {k: np.asarray(v) for k, v in res.items() if k != "trace"}
     out.update({k: np.swapaxes(np.asarray(v), 0, 1) for k, v in res["trace"].items()})
     return out
+
+
+def check_scenes(policy: Policy, policy_params, scenes: SceneSet) -> None:
+    """A model's parameters fit only scenes with the feature widths it was trained on
+    (models.feature_widths): ValueError naming both before anything is compiled."""
+    if policy_params is None:
+        return
+    preset = scenes.meta("preset")
+    name = f"({scenes.num_scenes} rooms{f' of preset {preset!r}' if preset else ''})"
+    check_feature_widths(feature_widths(policy_params), scenes, f"policy {policy.name}", name)
 
 
 def run_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: EpisodeSet,
@@ -144,6 +156,7 @@ def run_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: Epis
         raise ValueError("no episodes to evaluate (an empty episode set)")
     if batch_size < 1:
         raise ValueError(f"batch_size {batch_size}, expected an integer >= 1")
+    check_scenes(policy, policy_params, scenes)
     out: dict[str, list] = {k: [] for k in (*OUTCOMES, "path_len", "steps", *COUNTS)}
     key = jax.random.PRNGKey(seed)
     for lo in range(0, n, batch_size):

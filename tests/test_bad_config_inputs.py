@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -416,3 +417,64 @@ def test_sampling_and_evaluating_empty_sets_are_clear_errors(tiny_scenes):
     empty = E.sample_episodes(val, 1).subset(np.zeros(0, int))
     with pytest.raises(ValueError, match="no episodes to evaluate"):
         evaluation.evaluate(evaluation.random_policy(), None, val, empty)
+
+
+# ------------------------------------------------------------------ config.json (issue 22)
+
+# (field, JSON text of the value, expected message part): what a hand-edited or damaged
+# config.json may hold; every one a one-line error naming the file and the field
+CONFIG_JSON_CASES = [
+    ("lr", "1e400", "config field 'lr': inf, expected lr > 0, finite"),
+    ("lr", "1" + "0" * 400, "config field 'lr': an integer of 401 digits, expected a finite"),
+    ("num_envs", '"3"', "config field 'num_envs': '3', expected an integer"),
+    ("num_envs", "null", "config field 'num_envs': None, expected an integer"),
+    ("hidden", "true", "config field 'hidden': True, expected an integer"),
+    ("num_envs", str(2 ** 40), "config field 'num_envs': 1099511627776, expected an integer "
+                               "num_envs >= 1 and at most 2,147,483,647 (int32)"),
+    ("total_env_steps", str(2 ** 40), "'total_env_steps': 1099511627776, expected an integer "
+                                      "total_env_steps >= 1 and at most 1,000,000,000,000"),
+    ("model", '{"name": "org"}', "config field 'model': {'name': 'org'}, expected a string"),
+    ("scenes_dir", "[]", "config field 'scenes_dir': [], expected a string or null"),
+    ("version", "5.0", "config version 5.0, this orgnav_jax reads versions [2, 3, 4, 5]"),
+    ("stage", '["nav"]', "field 'stage': expected one of ['nav', 'tpn'], got ['nav']"),
+]
+
+
+def write_config_json(run: Path, cfg, field: str, value: str) -> Path:
+    """cfg's config.json in `run` with `field` replaced by the JSON text `value`."""
+    run.mkdir(parents=True, exist_ok=True)
+    doc = json.loads(cfg.to_json())
+    doc[field] = "@VALUE@"
+    (run / "config.json").write_text(json.dumps(doc).replace('"@VALUE@"', value))
+    return run / "config.json"
+
+
+@pytest.mark.parametrize("field, value, message", CONFIG_JSON_CASES)
+def test_a_malformed_config_json_is_one_line_naming_file_and_field(tmp_path, base_run, field,
+                                                                   value, message, cli_error):
+    from orgnav_jax.training.config import load_config
+    path = write_config_json(tmp_path / "run", get_config("tiny"), field, value)
+    with pytest.raises(ValueError) as err:
+        load_config(path.parent)
+    assert str(err.value).startswith(f"{path}: ") and message in str(err.value)
+    # --resume reads it first: exit 2, nothing written
+    before = snapshot(tmp_path)
+    line = cli_error(train_cli.main, ["--run-dir", path.parent, "--resume", "--quiet",
+                                      "--no-test"])
+    assert line == f"error: {err.value}"
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("tpn_lr", "1e400", "TPN config field 'tpn_lr': inf, expected tpn_lr >= 0"),
+    ("top_k", '"8"', "TPN config field 'top_k': '8', expected an integer"),
+    ("top_k", str(2 ** 40), "'top_k': 1099511627776, expected an integer top_k >= 1 and at "
+                            "most 2,147,483,647 (int32)"),
+    ("tpn_train_mode", "null", "'tpn_train_mode': None, expected true or false"),
+])
+def test_a_malformed_tpn_config_json_names_file_and_field(tmp_path, field, value, message):
+    from orgnav_jax.tpn.config import load_tpn_config
+    path = write_config_json(tmp_path / "tpn", get_tpn_config(), field, value)
+    with pytest.raises(ValueError) as err:
+        load_tpn_config(path.parent)
+    assert str(err.value).startswith(f"{path}: ") and message in str(err.value)

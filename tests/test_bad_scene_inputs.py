@@ -355,3 +355,92 @@ def test_binary_episode_file(content, kind, good, tmp_path, cli_error):
         load_episodes(path, S.load(good))
     assert_unchanged(tmp_path, before)
 
+
+
+# ------------------------------------------------------------------ typed readers (issue 22)
+def _edit_meta(path: Path, edit) -> None:
+    import json
+    meta = json.loads((path / "meta.json").read_text())
+    edit(meta)
+    (path / "meta.json").write_text(json.dumps(meta))
+
+
+META_CASES = {
+    "fields-list": (lambda m: m.update(fields=[]), r"meta\.json: field 'fields': expected an "
+                    r"object \{field: \{'shape': \[\.\.\.\], 'dtype': \.\.\.\}\}, got a list"),
+    "field-null": (lambda m: m["fields"].update(pose=None), r"meta\.json: fields\['pose'\]: "
+                   r"expected an object \{'shape': \[int, \.\.\.\], 'dtype': str\}, got null"),
+    "shape-string": (lambda m: m["fields"]["pose"].update(shape="big"),
+                     r"meta\.json: fields\['pose'\]: field 'shape': expected a list of integers "
+                     r">= 0, got 'big'"),
+    "shape-float": (lambda m: m["fields"]["pose"].update(shape=[1e400, 4]),
+                    r"meta\.json: fields\['pose'\]: field 'shape': expected a list of "
+                    r"integers >= 0, got \[inf, 4\]"),
+    "dtype-missing": (lambda m: m["fields"]["pose"].pop("dtype"),
+                      r"meta\.json: fields\['pose'\]: field 'dtype' is missing"),
+    "info-list": (lambda m: m.update(info=[1]), r"meta\.json: field 'info': expected an object "
+                  r"\{key: value\}, got a list"),
+    "info-nested": (lambda m: m["info"].update(preset={"a": 1}), r"meta\.json: info: field "
+                    r"'preset': expected a string, number, boolean, null or a list of those"),
+    "room-names": (lambda m: m["info"].update(room_name_ids=[1001], room_names=[7]),
+                   r"meta\.json: info: field 'room_names': expected a list of 1 strings"),
+    "version-float": (lambda m: m.update(version=2.0), r"meta\.json: format version 2\.0, "
+                      r"this orgnav_jax reads versions 1 and 2"),
+}
+
+
+@pytest.mark.parametrize("case", list(META_CASES))
+def test_a_malformed_meta_json_is_one_line_naming_file_and_field(case, good, copy_of,
+                                                                 tmp_path, cli_error):
+    edit, pattern = META_CASES[case]
+    path = copy_of(good)
+    _edit_meta(path, edit)
+    before = snapshot(tmp_path)
+    msg = cli_error(main, ["info", path])
+    assert re.fullmatch(rf"error: {re.escape(str(path))}/{pattern}.*", msg), msg
+    assert_unchanged(tmp_path, before)
+
+
+@pytest.mark.parametrize("field", ["global_feat", "appearance"])
+def test_a_set_of_zero_feature_channels_is_refused_on_load_and_save(field, good, copy_of,
+                                                                    tmp_path, cli_error):
+    path = copy_of(good)
+    arr = np.load(path / f"{field}.npy")[..., :0]
+    np.save(path / f"{field}.npy", arr)
+    _edit_meta(path, lambda m: m["fields"][field].update(shape=list(arr.shape)))
+    dim = {"global_feat": "global_dim", "appearance": "appearance_dim"}[field]
+    pattern = rf"field '{field}' has 0 feature channels \({dim} 0\), expected at least 1"
+    before = snapshot(tmp_path)
+    assert re.search(pattern, cli_error(main, ["info", path]))
+    assert_unchanged(tmp_path, before)
+    full = S.load(good)
+    with pytest.raises(ValueError, match=pattern):
+        S.save(full.replace(**{field: np.asarray(getattr(full, field))[..., :0]}),
+               tmp_path / "new")
+    assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.parametrize("field, value, pattern", [
+    ("seed", "1e400", r"field 'seed': expected an integer 0 <= seed <= 2,147,483,647, got inf"),
+    ("seed", '"3"', r"field 'seed': expected an integer .*, got '3'"),
+    ("seed", "null", r"field 'seed': expected an integer .*, got None"),
+    ("seed", str(2 ** 40), r"field 'seed': expected an integer .*, got 1099511627776"),
+    ("split", '["test"]', r"field 'split': expected one of \['', 'train', 'val', 'test'\], got "
+                          r"\['test'\]"),
+    ("scene", "[1]", r"episode 0: field 'scene': expected a string, got \[1\]"),
+    ("optimal_len", "1e400", r"episode 0: field 'optimal_len': expected an integer 0 <= "
+                             r"optimal_len <= 2,147,483,647, got inf"),
+])
+def test_an_episode_file_of_wrong_types_is_one_line(field, value, pattern, good, tmp_path,
+                                                    cli_error):
+    import json
+    record = {"scene": "FloorPlan422", "goal_object_type": "Sink", "state": START}
+    doc = {"format": "orgnav_jax.episodes/1", "split": "test", "seed": 0,
+           "episodes": [record]}
+    (record if field in record or field == "optimal_len" else doc)[field] = "@V@"
+    path = tmp_path / "eps.json"
+    path.write_text(json.dumps(doc).replace('"@V@"', value))
+    before = snapshot(tmp_path)
+    msg = cli_error(evaluate.main, episode_argv(good, path, tmp_path))
+    assert re.fullmatch(rf"error: episode file {re.escape(str(path))}: {pattern}", msg), msg
+    assert_unchanged(tmp_path, before)

@@ -266,3 +266,85 @@ def test_unreachable_target_is_warned_skipped_and_counted(tmp_path, small_set):
     assert skipped == 2 and len(eps) == 1
     with pytest.raises(OfflineFormatError, match="LightSwitch is not a valid target"):
         load_offline_episodes(path, small_set, on_unreachable="error")
+
+
+# ------------------------------------------------------------------ typed JSON (issue 22)
+def _set_first_point(text):
+    def edit(points):
+        points[0] = "@P@"
+        return points
+    return lambda path: path.write_text(
+        json.dumps(edit(json.loads(path.read_text()))).replace('"@P@"', text))
+
+
+@pytest.mark.parametrize("point", ['{"x": 1e400, "y": 0.9, "z": 0.0}',
+                                   '{"x": true, "y": 0.9, "z": 0.0}',
+                                   '{"x": null, "y": 0.9, "z": 0.0}',
+                                   '{"x": "0.00", "y": 0.9, "z": 0.0}',
+                                   '{"y": 0.9, "z": 0.0}', "[0.0, 0.9, 0.0]"])
+def test_grid_point_of_wrong_type(scene, point):
+    _set_first_point(point)(scene / "grid.json")
+    msg = expect(scene.parent, r"grid\.json: point 0 is .*, expected \{'x': float, 'y': "
+                               r"float, 'z': float\} \(finite numbers\)")
+    assert "\n" not in msg
+
+
+@pytest.mark.parametrize("value", ["false", '"no"', "null", "0"])
+def test_graph_directed_of_wrong_type(scene, value):
+    if value == "false":                        # a proper boolean is read
+        edit_json(scene / "graph.json", lambda d: {**d, "directed": False})
+        import_offline(scene.parent)
+        return
+    text = json.dumps({**json.loads((scene / "graph.json").read_text()), "directed": "@"})
+    (scene / "graph.json").write_text(text.replace('"@"', value))
+    expect(scene.parent, rf"graph\.json: field 'directed' is {re.escape(repr(json.loads(value)))}"
+                         r", expected true or false")
+
+
+@pytest.mark.parametrize("doc, pattern", [
+    ('{"FloorPlan401": null}', r"room 'FloorPlan401' has split None, expected one of"),
+    ('{"FloorPlan401": ["val"]}', r"room 'FloorPlan401' has split \['val'\], expected one of"),
+    ('{"FloorPlan401": {"split": 3}}', r"room 'FloorPlan401' has split 3, expected one of"),
+    ('{"FloorPlan401": {"split": "val", "room_type": ["kitchen"]}}',
+     r"room 'FloorPlan401' has room_type \['kitchen'\], expected one of"),
+    ('{"FloorPlan401": {"room_type": "kitchen"}}', r"room 'FloorPlan401' maps to .*, expected \{'split'"),
+    ('["FloorPlan401"]', r"holds a JSON list, expected an object"),
+])
+def test_splits_file_of_wrong_types(tmp_path, doc, pattern):
+    from orgnav_jax.scenes.offline.splits import read_splits
+    path = tmp_path / "splits.json"
+    path.write_text(doc)
+    with pytest.raises(OfflineFormatError, match=rf"--splits {re.escape(str(path))}: "
+                                                 + pattern):
+        read_splits(path)
+
+
+@pytest.mark.parametrize("field, value, pattern", [
+    ("scene", ["FloorPlan401"], r"episode 0: field 'scene': expected a string, got \["),
+    ("state", {"x": 1}, r"episode 0: field 'state': expected a string, got \{"),
+    ("goal_object_type", 3, r"episode 0: field 'goal_object_type': expected a string, got 3"),
+    ("optimal_len", float("inf"), r"episode 0: field 'optimal_len': expected an integer "
+                                  r"0 <= optimal_len <= 2,147,483,647, got inf"),
+    ("optimal_len", "4", r"episode 0: field 'optimal_len': expected an integer .*, got '4'"),
+])
+def test_episode_record_fields_of_wrong_type(tmp_path, small_set, field, value, pattern):
+    path = tmp_path / "eps.json"
+    record = {"scene": "FloorPlan401", "goal_object_type": "Sink", "state": START,
+              field: value}
+    path.write_text(json.dumps([record]))          # inf is written as Infinity
+    with pytest.raises(OfflineFormatError, match=re.escape(str(path)) + ": " + pattern):
+        load_offline_episodes(path, small_set)
+
+
+@pytest.mark.parametrize("file, shape, pattern", [
+    ("resnet18_featuremap.hdf5", (1, 0, 7, 7), r"resnet18_featuremap\.hdf5: dataset .* has "
+     r"shape \(1, 0, 7, 7\): 0 feature channels, expected G >= 1"),
+    ("fasterrcnn_features_22cls.hdf5", (22, 5), r"fasterrcnn_features_22cls\.hdf5: dataset .* "
+     r"has shape \(22, 5\), expected \(22, 517\)"),
+])
+def test_features_of_zero_channels_are_refused_at_import(scene, file, shape, pattern):
+    with h5py.File(scene / file, "a") as f:
+        for k in list(f):
+            del f[k]
+            f.create_dataset(k, data=np.zeros(shape, np.float32))
+    expect(scene.parent, pattern)

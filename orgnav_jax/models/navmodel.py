@@ -96,3 +96,52 @@ def init_params(model: NavModel, key: jax.Array, scenes):
                          jnp.zeros((1, C, scenes.appearance_dim)), jnp.zeros((1, C, 4)),
                          jnp.zeros((1, C)), jnp.zeros((1, C)), jnp.zeros((1, 6)))
     return model.init({"params": key}, inputs, model.initial_carry(1))
+
+
+# The feature widths a model is built for are in its parameters' shapes: the trunk's
+# global 1x1 layer reads the G channels of the global map, and each encoder's first layer
+# over the nodes [appearance (d), location (6)] has d + 6 input rows (the first of these
+# layers an encoder has; the WE encoder reads no appearance).
+GLOBAL_INPUT = "trunk/global_1x1/kernel"
+APPEARANCE_INPUTS = ("encoder/gcn_0/kernel", "encoder/hidden/kernel", "encoder/to_map/kernel")
+LOCATION_FEATURES = 6
+
+
+def _path_name(path) -> str:
+    return "/".join(str(getattr(k, "key", getattr(k, "name", getattr(k, "idx", k))))
+                    for k in path)
+
+
+def feature_widths(params) -> dict[str, int]:
+    """The scene feature widths parameters were built for -> {"global_dim": G,
+    "appearance_dim": d} (either absent when the parameters do not show it). `params`:
+    any tree holding a NavModel's parameters (arrays, shapes, or a checkpoint's array
+    metadata: a training runner, a TPN policy's {"base", "tpn"}), read from shapes only."""
+    shapes = {_path_name(p): tuple(getattr(x, "shape", ()))
+              for p, x in jax.tree_util.tree_leaves_with_path(params)}
+    out = {}
+    for path, shape in shapes.items():
+        if path.endswith(GLOBAL_INPUT) and len(shape) == 2:
+            out.setdefault("global_dim", shape[0])
+    if "encoder/target_embedding/kernel" not in "|".join(shapes):
+        for name in APPEARANCE_INPUTS:
+            rows = [s[0] for p, s in shapes.items() if p.endswith(name) and len(s) == 2]
+            if rows:
+                out["appearance_dim"] = rows[0] - LOCATION_FEATURES
+                break
+    return out
+
+
+def check_feature_widths(trained: dict[str, int], scenes, what: str, scenes_name: str) -> None:
+    """ValueError (one line) when `scenes`' feature widths differ from the ones a model
+    was `trained` on (feature_widths): `what` names the model (a checkpoint, a run),
+    scenes_name the scenes. Checked before a model is built or applied (else flax fails
+    deep inside with a parameter shape error)."""
+    have = {"global_dim": scenes.global_dim, "appearance_dim": scenes.appearance_dim}
+    diff = [k for k in trained if trained[k] != have[k]]
+    if diff:
+        def words(w):
+            return ", ".join(f"{k} {w[k]}" for k in diff)
+        raise ValueError(f"{what} was trained on scene features of {words(trained)}, but "
+                         f"scenes {scenes_name} have {words(have)}: use scenes with the "
+                         "feature widths the model was trained on")

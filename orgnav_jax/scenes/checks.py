@@ -66,6 +66,13 @@ def validate_shapes(scenes, source: str = "SceneSet") -> None:
         raise _shape_error(source, "appearance", scenes.appearance.shape, f"({T}, {C}, d)")
     if tuple(scenes.global_feat.shape[:3]) != (T, 7, 7) or scenes.global_feat.ndim != 4:
         raise _shape_error(source, "global_feat", scenes.global_feat.shape, f"({T}, 7, 7, G)")
+    for name, stored, dim, width in (
+            ("global_feat", scenes.global_feat.shape[-1], "global_dim", scenes.global_dim),
+            ("appearance", scenes.appearance.shape[-1], "appearance_dim",
+             scenes.appearance_dim)):
+        if min(stored, width) < 1:     # a model over 0 channels divides by zero
+            raise ValueError(f"{source}: field {name!r} has {min(stored, width)} feature "
+                             f"channels ({dim} {width}), expected at least 1")
     if (scenes.appearance_basis is None) != (scenes.appearance_proto is None):
         raise ValueError(f"{source}: fields 'appearance_basis' and 'appearance_proto' "
                          "must both be present (synthetic codes) or both absent")

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from orgnav_jax.errors import field_error, is_int, is_number, read_field, read_object, read_str
 from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.sceneset import FORMAT_NAME, FORMAT_VERSION, SceneSet
 
@@ -179,12 +180,10 @@ def load(path: str | os.PathLike, mmap: bool = False) -> SceneSet:
         got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
         raise ValueError(f"{meta_path}: format is {got!r}, expected {FORMAT_NAME!r}")
     version = meta.get("version")
-    if version not in (FORMAT_VERSION, PADDED_VERSION):
+    if not is_int(version) or version not in (FORMAT_VERSION, PADDED_VERSION):
         raise ValueError(f"{meta_path}: format version {version!r}, this orgnav_jax reads "
                          f"versions {PADDED_VERSION} and {FORMAT_VERSION}; rebuild the scenes")
-    fields = meta.get("fields", {})
-    if not isinstance(fields, dict):
-        raise ValueError(f"{meta_path}: 'fields' must be an object (field -> shape, dtype)")
+    fields, info = read_meta_fields(meta, meta_path)
     arrays = {}
     for name in _array_fields(version):
         if name not in fields:
@@ -204,14 +203,49 @@ def load(path: str | os.PathLike, mmap: bool = False) -> SceneSet:
             raise ValueError(f"{file}: field {name!r} has shape {arr.shape} dtype {arr.dtype}, "
                              f"meta.json says {tuple(want['shape'])} {want['dtype']}")
         arrays[name] = arr
-    info = tuple((k, tuple(v) if isinstance(v, list) else v)
-                 for k, v in meta.get("info", {}).items())
     if version == PADDED_VERSION:
         scenes = _from_padded_file(path, arrays, info)
     else:
         scenes = SceneSet(**arrays, info=info)
     scenes.validate(str(path))
     return scenes
+
+
+def _plain(value) -> bool:
+    """A JSON scalar (string, number, boolean, null): what an info entry may hold, alone
+    or in a list."""
+    return value is None or isinstance(value, str) or is_number(value) or \
+        isinstance(value, bool)
+
+
+def read_meta_fields(meta: dict, meta_path) -> tuple[dict, tuple]:
+    """The typed part of meta.json: "fields" {field: {"shape": [int >= 0, ...], "dtype":
+    str}} and "info" {key: scalar or list of scalars} -> (fields, info tuple). ValueError
+    naming meta.json and the field otherwise (the format and version: load)."""
+    fields = read_object(meta.get("fields", {}), f"{meta_path}: field 'fields'",
+                         "an object {field: {'shape': [...], 'dtype': ...}}")
+    for name, want in fields.items():
+        where = f"{meta_path}: fields[{name!r}]"
+        read_object(want, where, "an object {'shape': [int, ...], 'dtype': str}")
+        shape = read_field(want, "shape", where)
+        if not isinstance(shape, list) or not all(is_int(n) and 0 <= n <= 2 ** 62
+                                                  for n in shape):
+            raise field_error(where, "shape", "a list of integers >= 0", shape)
+        read_str(want, "dtype", where)
+    info = read_object(meta.get("info", {}), f"{meta_path}: field 'info'",
+                       "an object {key: value}")
+    for key, value in info.items():
+        if not (_plain(value) or isinstance(value, list) and all(map(_plain, value))):
+            raise field_error(f"{meta_path}: info", key,
+                              "a string, number, boolean, null or a list of those", value)
+    ids, names = info.get("room_name_ids", []), info.get("room_names", [])
+    if not (isinstance(ids, list) and all(map(is_int, ids))):
+        raise field_error(f"{meta_path}: info", "room_name_ids", "a list of integers", ids)
+    if not (isinstance(names, list) and all(isinstance(n, str) for n in names)) \
+            or len(names) != len(ids):
+        raise field_error(f"{meta_path}: info", "room_names",
+                          f"a list of {len(ids)} strings (one per room_name_ids)", names)
+    return fields, tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in info.items())
 
 
 def _from_padded_file(path: Path, arrays: dict, info: tuple) -> SceneSet:

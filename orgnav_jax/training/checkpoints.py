@@ -11,14 +11,21 @@ Layout of a run directory:
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import logging
 import os
 import sys
+import threading
 from pathlib import Path
 
 import jax
 import orbax.checkpoint as ocp
 
+from orgnav_jax.errors import (
+    field_error, is_int, is_number, read_field, read_int, read_object, shown,
+)
+from orgnav_jax.models.navmodel import check_feature_widths, feature_widths
 from orgnav_jax.training.config import CONFIG_VERSION, READABLE_VERSIONS
 
 logging.getLogger("absl").setLevel(logging.ERROR)
@@ -80,6 +87,26 @@ class RunCheckpoints:
     def latest_step(self) -> int | None:
         return self.latest.latest_step()
 
+    def feature_widths(self, best: bool = False) -> dict[str, int]:
+        """The scene feature widths the newest (or best) checkpoint's model was built
+        for, from its array metadata (no array is read): models.feature_widths. {} when
+        there is no checkpoint or its metadata cannot be read (restore names that)."""
+        manager = self.best if best else self.latest
+        step = manager.latest_step()
+        if step is None:
+            return {}
+        try:
+            return feature_widths(manager.item_metadata(step)["state"])
+        except Exception:                   # orbax raises many kinds; restore reports it
+            return {}
+
+    def check_scenes(self, scenes, scenes_name: str, best: bool = False) -> None:
+        """ValueError (one line) when `scenes`' feature widths differ from those the
+        newest (or best) checkpoint was trained on: before any model is built."""
+        step = (self.best if best else self.latest).latest_step()
+        where = f"checkpoint {self.run_dir / ('best' if best else 'checkpoints') / str(step)}"
+        check_feature_widths(self.feature_widths(best), scenes, where, scenes_name)
+
     def restore(self, like, best: bool = False, step: int | None = None,
                 fallback: bool = False):
         """-> (state shaped like `like`, meta dict), from the newest checkpoint (or `best`,
@@ -100,7 +127,8 @@ class RunCheckpoints:
         broken = []
         for s in steps:
             try:
-                out = _restore_one(manager, s, like)
+                with _quiet_failed_reads():
+                    out = _restore_one(manager, s, like)
             except CheckpointUnreadable as err:
                 broken.append((s, err))
                 continue
@@ -112,6 +140,25 @@ class RunCheckpoints:
                 self.latest = _manager(self.run_dir / "checkpoints", self.keep)
             return out
         raise broken[0][1]
+
+
+@contextlib.contextmanager
+def _quiet_failed_reads():
+    """While trying a checkpoint that may be damaged: orbax's reader threads and
+    coroutines die with it and Python would print each one's traceback ("Event loop is
+    closed", "Exception ignored in ..."). The error that matters is raised and named by
+    restore; those echoes are dropped (collected here, before the hooks come back)."""
+    hooks = sys.unraisablehook, threading.excepthook
+    log = logging.getLogger("asyncio")
+    level = log.level
+    sys.unraisablehook = threading.excepthook = lambda *_: None
+    log.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        gc.collect()
+        sys.unraisablehook, threading.excepthook = hooks
+        log.setLevel(level)
 
 
 class CheckpointUnreadable(ValueError):
@@ -145,12 +192,39 @@ def _restore_one(manager, step: int, like):
             state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()))
     except Exception as err:
         raise CheckpointUnreadable(f"{where} cannot be read ({_short(err)})") from None
-    meta = out["meta"]
-    if not isinstance(meta, dict) or meta.get("config_version") not in READABLE_VERSIONS:
-        got = meta.get("config_version") if isinstance(meta, dict) else meta
-        raise CheckpointUnreadable(f"{where} has config version {got}, expected one of "
-                                   f"{list(READABLE_VERSIONS)}")
-    return out["state"], meta
+    return out["state"], read_meta(out["meta"], where, best=manager_is_best(manager))
+
+
+def manager_is_best(manager) -> bool:
+    return Path(manager.directory).name == "best"
+
+
+def read_meta(meta, where: str, best: bool = False) -> dict:
+    """The typed reader of a checkpoint's metadata (saved by RunCheckpoints.save):
+    {"config_version": one of READABLE_VERSIONS, "chunk": int32 >= 0, and "best" (a
+    latest-N checkpoint: the best val record so far) or "val" (a best-on-val one: its
+    val record), each an object of numbers (nan allowed: a mean over no episodes)}.
+    CheckpointUnreadable naming the checkpoint and the field otherwise (the chunk's
+    range against the run is checked on resume: training/driver.py, resumed_chunk)."""
+    if not isinstance(meta, dict):
+        raise CheckpointUnreadable(f"{where}: its metadata is {shown(meta)}, expected a JSON "
+                                   "object {config_version, chunk, best or val}")
+    version = meta.get("config_version")
+    if not is_int(version) or version not in READABLE_VERSIONS:
+        raise CheckpointUnreadable(f"{where} has config version {shown(version)}, expected "
+                                   f"one of {list(READABLE_VERSIONS)}")
+    try:
+        read_int(meta, "chunk", f"{where} metadata")
+        record = "val" if best else "best"
+        values = read_object(read_field(meta, record, f"{where} metadata"),
+                             f"{where} metadata field {record!r}",
+                             "an object of numbers (val metric -> value)")
+        for key, value in values.items():      # nan: a mean over no episodes
+            if not (is_number(value) or isinstance(value, float) and value != value):
+                raise field_error(f"{where} metadata {record!r}", key, "a number", value)
+    except ValueError as err:
+        raise CheckpointUnreadable(str(err)) from None
+    return meta
 
 
 def _short(err: BaseException, limit: int = 160) -> str:

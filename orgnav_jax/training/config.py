@@ -45,6 +45,11 @@ DTYPES = get_args(DType)
 
 
 INT32_MAX = 2 ** 31 - 1
+FLOAT_MAX = 1.7976931348623157e308
+# Integer fields are int32 (the env and the jitted loop count in int32), except the
+# budgets, counted on the host: at most a trillion env steps (episodes).
+BUDGET_MAX = 10 ** 12
+BUDGETS_FIELDS = ("total_env_steps", "total_episodes")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,7 +92,8 @@ FINITE = Range()
 
 def check_types(cfg, prefix: str) -> None:
     """Each field holds a value of its declared kind (int, float, bool, str, None); a
-    config read from JSON may not. ValueError naming the field otherwise."""
+    config read from JSON may not; an integer given for a float field must fit a float.
+    ValueError naming the field otherwise."""
     for f in dataclasses.fields(cfg):
         value, kind = getattr(cfg, f.name), type(f.default)
         if kind is bool:
@@ -96,6 +102,9 @@ def check_types(cfg, prefix: str) -> None:
             ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
         elif kind is float:
             ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+            if ok and isinstance(value, numbers.Integral) and abs(value) > FLOAT_MAX:
+                raise ValueError(f"{prefix} {f.name!r}: an integer of {len(str(value))} "
+                                 "digits, expected a finite number")
         elif f.default is None:
             ok = value is None or isinstance(value, str)
         else:
@@ -108,13 +117,18 @@ def check_types(cfg, prefix: str) -> None:
 
 def check_ranges(cfg, ranges: dict[str, Range], prefix: str) -> None:
     """ValueError for the first field outside its Range: `<prefix> 'gamma': 2.0, expected
-    0 < gamma <= 1`."""
+    0 < gamma <= 1`; integers are also int32 (budgets: at most BUDGET_MAX)."""
     for name, rng in ranges.items():
         value = getattr(cfg, name)
+        integer = isinstance(value, numbers.Integral)
         if not rng.ok(value):
-            integer = isinstance(value, numbers.Integral)
             raise ValueError(f"{prefix} {name!r}: {value!r}, expected "
                              f"{rng.text(name, integer)}")
+        limit = BUDGET_MAX if name in BUDGETS_FIELDS else INT32_MAX
+        if integer and not -limit - 1 <= value <= limit:
+            raise ValueError(f"{prefix} {name!r}: {value!r}, expected "
+                             f"{rng.text(name, integer)} and at most {limit:,}"
+                             + (" (int32)" if limit == INT32_MAX else ""))
 
 
 def budget_notice(field: str, total: int, per_update: int, updates_per_chunk: int,

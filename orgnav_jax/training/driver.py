@@ -41,7 +41,7 @@ from tqdm import tqdm
 
 from orgnav_jax.errors import UserError
 from orgnav_jax.training.checkpoints import RunCheckpoints
-from orgnav_jax.training.run_dir import MetricsLog, write_config
+from orgnav_jax.training.run_dir import METRICS_FILE, MetricsLog, read_metrics, write_config
 from orgnav_jax.training.scale import is_primary
 
 
@@ -104,17 +104,41 @@ class _Member:
     log: MetricsLog | None = None
 
 
-def _restore(members: list[_Member], runners: list, stacked: bool) -> tuple[int, list]:
+def resumed_chunk(meta: dict, step: int, stage: Stage, where: str) -> int:
+    """The chunks done by the checkpoint at `step` (its metadata, read by
+    checkpoints.read_meta), checked against the run: 1 <= chunk <= the stage's number of
+    chunks, chunk x env steps (episodes) per chunk == step, and its best record holding
+    the stage's score keys. UserError naming the checkpoint and the field otherwise (a
+    resume must not continue from a chunk the run never reached)."""
+    chunk = meta["chunk"]
+    if not 1 <= chunk <= stage.num_chunks or chunk * stage.per_chunk != step:
+        raise UserError(f"{where} metadata: field 'chunk': expected {step // stage.per_chunk}"
+                        f" (its step {step:,} / {stage.per_chunk:,} {stage.unit}s per chunk; "
+                        f"the run has {stage.num_chunks} chunks), got {chunk!r}")
+    missing = [k for k in stage.score_keys if k not in meta["best"]]
+    if missing:
+        raise UserError(f"{where} metadata: field 'best' lacks {missing}, expected the "
+                        f"best val record ({', '.join(stage.score_keys)})")
+    return chunk
+
+
+def _restore(members: list[_Member], runners: list, stacked: bool,
+             stage: Stage) -> tuple[int, list]:
     """Resume: each member's runner from its checkpoint -> (chunks done, runners). One
     run takes its newest readable checkpoint; a population the newest step every member
     has (they save together, so at most the last save of a kill differs)."""
+    def where(m: _Member, step: int) -> str:
+        return f"checkpoint {m.run_dir / 'checkpoints' / str(step)}"
+
     if not stacked:
         m = members[0]
         if m.ckpt.latest_step() is None:
             return 0, runners
         runner, meta = m.ckpt.restore(runners[0], fallback=True)
+        step = m.ckpt.latest_step()          # the one restored (broken ones set aside)
+        chunk = resumed_chunk(meta, step, stage, where(m, step))
         m.best = meta["best"]
-        return meta["chunk"], [runner]
+        return chunk, [runner]
     steps = [set(m.ckpt.latest.all_steps()) for m in members]
     if not any(steps):
         return 0, runners
@@ -126,8 +150,8 @@ def _restore(members: list[_Member], runners: list, stacked: bool) -> tuple[int,
     step, chunks, out = max(common), set(), []
     for m, runner in zip(members, runners):
         runner, meta = m.ckpt.restore(runner, step=step)
+        chunks.add(resumed_chunk(meta, step, stage, where(m, step)))
         m.best = meta["best"]
-        chunks.add(meta["chunk"])
         out.append(runner)
     if len(chunks) != 1:
         raise UserError(f"--resume: the seeds' checkpoints at step {step} are at different "
@@ -182,7 +206,11 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
     primary = is_primary()
     members = [_Member(cfg, Path(d), RunCheckpoints(d, cfg.keep_checkpoints),
                        {k: -1.0 for k in stage.score_keys}) for cfg, d in zip(cfgs, run_dirs)]
-    chunk, runners = _restore(members, runners, stacked) if resume else (0, runners)
+    if resume:        # a malformed log is refused before anything is written
+        for m in members:
+            if (m.run_dir / METRICS_FILE).exists():
+                read_metrics(m.run_dir, stage.step_name, skip_broken=True)
+    chunk, runners = _restore(members, runners, stacked, stage) if resume else (0, runners)
     for m in members:      # after the restore: a failed resume changes nothing
         if primary:
             write_config(m.run_dir, m.cfg)

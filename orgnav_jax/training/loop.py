@@ -32,7 +32,8 @@ from orgnav_jax.errors import UserError
 from orgnav_jax.training import scale
 from orgnav_jax.training.driver import (
     Stage, run_population, run_stage)
-from orgnav_jax.training.runs import model_policy, preflight, split_on_device
+from orgnav_jax.training.checkpoints import RunCheckpoints
+from orgnav_jax.training.runs import model_policy, preflight, scenes_name, split_on_device
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 
 
@@ -120,6 +121,9 @@ def _train(cfgs: list[TrainConfig], scenes, run_dirs: list[Path], mesh, resume: 
            progress: bool, stop_after_chunks: int | None,
            population: bool = False) -> list[dict]:
     cfg = cfgs[0]
+    if resume:         # the scenes must have the widths the checkpoints were trained on
+        for run_dir in run_dirs:
+            RunCheckpoints(run_dir).check_scenes(scenes, scenes_name(cfg))
     # one device copy per split in the process (shared with a later evaluation); the
     # test rooms of the memory-mapped set are never read
     train_scenes = split_on_device(cfg, "train")

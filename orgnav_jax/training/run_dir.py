@@ -31,7 +31,9 @@ import sys
 import time
 from pathlib import Path
 
-from orgnav_jax.errors import UserError
+from orgnav_jax.errors import (
+    UserError, field_error, is_int, read_int, read_object, read_str, shown,
+)
 from orgnav_jax.safe_write import write_text_atomic
 
 CONFIG_FILE = "config.json"
@@ -50,8 +52,9 @@ def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int
                 renames: dict[int, dict[str, str]] | None = None):
     """config.json of a run directory -> cls(**fields).validate(), after checking that it
     is JSON, of this `stage`, of one of `versions` (upgrades[v]: the values of fields a
-    version-v config lacks; renames[v]: old field name -> new) with known field names;
-    one-line errors naming the file."""
+    version-v config lacks; renames[v]: old field name -> new) with known field names,
+    every field's type and range checked (cls.validate: check_types, check_ranges);
+    one-line errors naming the file and the field."""
     path = Path(run_dir) / CONFIG_FILE
     if not path.exists():
         raise FileNotFoundError(f"{path} not found: {run_dir} is not a {STAGES[stage]} run "
@@ -64,19 +67,23 @@ def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int
         raise ValueError(f"{path}: expected a JSON object of config fields")
     found = doc.pop("stage", "nav")
     if found != stage:
-        raise ValueError(f"{path}: not a {STAGES[stage]} run, but a "
-                         f"{STAGES.get(found, found)} one")
+        if not isinstance(found, str) or found not in STAGES:
+            raise field_error(path, "stage", f"one of {list(STAGES)}", found)
+        raise ValueError(f"{path}: not a {STAGES[stage]} run, but a {STAGES[found]} one")
     version = doc.pop("version", None)
-    if version not in versions:
-        raise ValueError(f"{path}: config version {version}, this orgnav_jax reads versions "
-                         f"{list(versions)}")
+    if not is_int(version) or version not in versions:
+        raise ValueError(f"{path}: config version {shown(version)}, this orgnav_jax reads "
+                         f"versions {list(versions)}")
     renamed = (renames or {}).get(version, {})
     doc = {renamed.get(k, k): v for k, v in doc.items()}
     doc = {**(upgrades or {}).get(version, {}), **doc}
     bad = sorted(set(doc) - {f.name for f in dataclasses.fields(cls)})
     if bad:
         raise ValueError(f"{path}: unknown config field(s) {bad}")
-    return cls(**doc).validate()
+    try:
+        return cls(**doc).validate()
+    except ValueError as err:      # "config field 'lr': ..." -> "<path>: config field ..."
+        raise ValueError(f"{path}: {err}") from None
 
 
 class RunDirLocked(UserError):
@@ -249,6 +256,38 @@ def write_config(run_dir: str | os.PathLike, cfg) -> None:
     write_text_atomic(Path(run_dir) / CONFIG_FILE, cfg.to_json())
 
 
+def read_metrics(run_dir: str | os.PathLike, step_name: str = "env_steps",
+                 skip_broken: bool = False) -> list[dict]:
+    """The typed reader of a run's metrics.jsonl (MetricsLog writes it) -> its records,
+    in file order. Each line is a JSON object {"kind": a string ("train", "val"),
+    <step_name>: an int >= 0 (env_steps; episodes for stage 2), metric: a number, ...}
+    (nan and inf are numbers: a mean over no episodes). ValueError naming the file, the
+    line and the field otherwise; with skip_broken, lines that are not JSON at all (the
+    last line of a killed run) are skipped. FileNotFoundError when the file is missing."""
+    path = Path(run_dir) / METRICS_FILE
+    out = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        where = f"{path} line {n}"
+        try:
+            rec = json.loads(line)
+        except (ValueError, RecursionError):
+            if skip_broken:
+                continue
+            raise ValueError(f"{where}: not valid JSON (expected one JSON object a "
+                             "line)") from None
+        read_object(rec, where, "a JSON object {kind, " + step_name + ", metric: number}")
+        read_str(rec, "kind", where)
+        read_int(rec, step_name, where, hi=None)
+        for key, value in rec.items():
+            if key != "kind" and (isinstance(value, bool) or
+                                  not isinstance(value, (int, float))):
+                raise field_error(where, key, "a number", value)
+        out.append(rec)
+    return out
+
+
 class MetricsLog:
     """Appends one JSON object per record to metrics.jsonl and, if tensorboardX is
     installed, the same scalars to TensorBoard event files under tb/.
@@ -271,14 +310,11 @@ class MetricsLog:
     def _drop_after(self, step: int) -> None:
         if not self.path.exists():
             return
-        keep = []
-        for line in self.path.read_text().splitlines():
-            try:
-                if json.loads(line).get(self.step_name, 0) <= step:
-                    keep.append(line)
-            except ValueError:          # a line cut by a kill: dropped
-                continue
-        write_text_atomic(self.path, "".join(line + "\n" for line in keep))
+        # a line cut by a kill is dropped; a malformed record is an error (read_metrics,
+        # also called before anything of a resume is written: training/driver.py)
+        keep = [rec for rec in read_metrics(self.path.parent, self.step_name, True)
+                if rec[self.step_name] <= step]
+        write_text_atomic(self.path, "".join(json.dumps(rec) + "\n" for rec in keep))
 
     def write(self, kind: str, step: int, values: dict) -> None:
         with self.path.open("a") as f:

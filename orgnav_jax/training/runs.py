@@ -88,13 +88,17 @@ def preflight_tpn(cfg, nav_cfg: TrainConfig):
 
 def load_run_model(run_dir: str | Path, best: bool = True):
     """-> (NavModel, params, config) of a training run (its best-on-val checkpoint, else
-    the latest)."""
+    the latest); its scenes' feature widths must be those the checkpoint was trained on
+    (checked before the model is built)."""
     cfg = load_config(run_dir)
-    train = scenes_for(cfg).split_view("train")
+    scenes = scenes_for(cfg)
+    ckpt = RunCheckpoints(run_dir)
+    best = best and ckpt.best.latest_step() is not None
+    ckpt.check_scenes(scenes, scenes_name(cfg), best)      # before the model is built
+    train = scenes.split_view("train")
     model = build_model(cfg, train)
     like = init_params(model, jax.random.PRNGKey(0), train)
-    ckpt = RunCheckpoints(run_dir)
-    if best and ckpt.best.latest_step() is not None:
+    if best:
         params, _ = ckpt.restore(like, best=True)
     else:
         from orgnav_jax.training.update import init_runner, make_optimizer

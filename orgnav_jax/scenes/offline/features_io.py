@@ -126,6 +126,10 @@ def inspect_scene(folder: Path, keys: list[str], det_path: Path) -> tuple[tuple,
             or (len(g) == 3 and g[1:] == (FEATURE_GRID,) * 2)):
         raise OfflineFormatError(f"{folder / files.RESNET_FILE}: dataset {keys[0]!r} has shape "
                                  f"{g}, expected (1, G, 7, 7) (G = 512 for ResNet-18)")
+    if g[-3] < 1:
+        raise OfflineFormatError(f"{folder / files.RESNET_FILE}: dataset {keys[0]!r} has shape "
+                                 f"{g}: 0 feature channels, expected G >= 1 (512 for "
+                                 "ResNet-18)")
     if len(d) != 2 or d[1] <= BOX_CONF:
         raise OfflineFormatError(f"{det_path}: dataset {keys[0]!r} has shape {d}, expected "
                                  "(22, 517): rows of 512 appearance, 4 box, 1 confidence")

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from orgnav_jax.constants import ACTIONS, NUM_ACTIONS, NUM_CATEGORIES
+from orgnav_jax.errors import is_number, shown
 from orgnav_jax.scenes.offline import files
 from orgnav_jax.scenes.offline.graph import grid_states, state_order, transitions
 from orgnav_jax.scenes.offline.validate import (
@@ -46,7 +47,7 @@ def _graph_keys_and_edges(path: Path):
     keys = []
     for i, node in enumerate(doc["nodes"]):
         if not isinstance(node, dict) or not isinstance(node.get("id"), str):
-            raise OfflineFormatError(f"{what}: node {i} is {node!r}, expected {{'id': key}}")
+            raise OfflineFormatError(f"{what}: node {i} is {shown(node)}, expected {{'id': key}}")
         keys.append(node["id"])
     if not keys:
         raise OfflineFormatError(f"{what}: the graph has no nodes")
@@ -57,10 +58,14 @@ def _graph_keys_and_edges(path: Path):
     for i, link in enumerate(links):
         if not isinstance(link, dict) or not all(isinstance(link.get(k), str)
                                                  for k in ("source", "target")):
-            raise OfflineFormatError(f"{what}: link {i} is {link!r}, expected "
+            raise OfflineFormatError(f"{what}: link {i} is {shown(link)}, expected "
                                      "{'source': key, 'target': key}")
         pairs.append((link["source"], link["target"]))
-    return keys, pairs, bool(doc.get("directed", True))
+    directed = doc.get("directed", True)
+    if not isinstance(directed, bool):
+        raise OfflineFormatError(f"{what}: field 'directed' is {shown(directed)}, expected "
+                                 "true or false")
+    return keys, pairs, directed
 
 
 def _check_grid(path: Path, keys: list[str], pose: np.ndarray) -> int:
@@ -70,11 +75,11 @@ def _check_grid(path: Path, keys: list[str], pose: np.ndarray) -> int:
         raise OfflineFormatError(f"{path}: expected a list of points {{'x', 'y', 'z'}}")
     points = set()
     for i, p in enumerate(grid):
-        try:
-            points.add((round(float(p["x"]) * 100), round(float(p["z"]) * 100)))
-        except (TypeError, KeyError, ValueError):
-            raise OfflineFormatError(f"{path}: point {i} is {p!r}, expected "
-                                     "{'x': float, 'y': float, 'z': float}") from None
+        if not isinstance(p, dict) or not all(is_number(p.get(k)) and p[k] == p[k]
+                                              for k in ("x", "z")):
+            raise OfflineFormatError(f"{path}: point {i} is {shown(p)}, expected "
+                                     "{'x': float, 'y': float, 'z': float} (finite numbers)")
+        points.add((round(float(p["x"]) * 100), round(float(p["z"]) * 100)))
     cells = {(round(x * 100), round(z * 100)) for x, z in pose[:, :2]}
     missing = cells - points
     if missing:
@@ -127,7 +132,7 @@ def _authors_actions(path: Path, keys: list[str], index: dict[str, int], unknown
     ignored: set[str] = set()
     for key, per_type in doc.items():
         if not isinstance(per_type, dict):
-            raise OfflineFormatError(f"{path}: state {key!r} maps to {per_type!r}, expected "
+            raise OfflineFormatError(f"{path}: state {key!r} maps to {shown(per_type)}, expected "
                                      "{target type: action index}")
         for name, a in per_type.items():
             c = check_type(name, f"{path} (state {key!r})", unknown_types, ignored)
