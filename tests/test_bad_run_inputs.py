@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -260,3 +261,123 @@ def test_a_non_finite_loss_is_a_one_line_error_that_keeps_the_checkpoints(
 def test_debug_shows_the_traceback(tmp_path):
     with pytest.raises(FileNotFoundError):
         run_cli(train_cli.main, ["--run-dir", str(tmp_path / "none"), "--resume", "--debug"])
+
+
+# 11. typed readers of what a run reads back (issue 22) ---------------------------------
+
+def _edit_meta(step_dir: Path, **fields) -> None:
+    path = step_dir / "meta" / "metadata"
+    meta = json.loads(path.read_text())
+    meta.update(fields)
+    path.write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("chunk", [1_000_000, 1, 0])
+def test_a_checkpoint_chunk_the_run_never_reached_is_refused(tmp_path, half_run, chunk,
+                                                            cli_error):
+    run = copy_of(half_run, tmp_path / "run")
+    newest = run / "checkpoints" / str(2 * CHUNK)
+    _edit_meta(newest, chunk=chunk)
+    before = snapshot(run)
+    msg = cli_error(train_cli.main, ["--run-dir", run, "--resume", "--quiet", "--no-test"])
+    assert msg == (f"error: checkpoint {newest} metadata: field 'chunk': expected 2 (its step "
+                   f"{2 * CHUNK} / {CHUNK} steps per chunk; the run has 4 chunks), got {chunk}")
+    assert snapshot(run) == before
+
+
+@pytest.mark.parametrize("fields, message", [
+    (dict(chunk="2"), "field 'chunk': expected an integer 0 <= chunk <= 2,147,483,647, got '2'"),
+    (dict(chunk=None), "field 'chunk': expected an integer 0 <= chunk <= 2,147,483,647, got None"),
+    (dict(chunk=2 ** 40), "field 'chunk': expected an integer 0 <= chunk <= 2,147,483,647, got "
+                          "1099511627776"),
+    (dict(best=[1, 2]), "field 'best': expected an object of numbers (val metric -> value), "
+                        "got a list"),
+    (dict(best={"success": "0.5", "spl": 0.1}), "'best': field 'success': expected a number, "
+                                                "got '0.5'"),
+    (dict(config_version=True), "has config version True, expected one of [2, 3, 4, 5]"),
+])
+def test_malformed_checkpoint_metadata_is_named_and_set_aside(tmp_path, tiny_dir, half_run,
+                                                              fields, message, capsys):
+    """Metadata of the wrong types makes a checkpoint unreadable: named, moved aside
+    (kept), and the resume falls back to the previous one, as for a damaged checkpoint."""
+    run = copy_of(half_run, tmp_path / "run")
+    newest = run / "checkpoints" / str(2 * CHUNK)
+    _edit_meta(newest, **fields)
+    from orgnav_jax.training.checkpoints import CheckpointUnreadable
+    with pytest.raises(CheckpointUnreadable) as err:
+        _restore(run)
+    assert str(err.value).startswith(f"checkpoint {newest}") and message in str(err.value)
+    capsys.readouterr()
+    loop.train(small_cfg(tiny_dir, run), resume=True, progress=False, stop_after_chunks=2)
+    err = capsys.readouterr().err
+    assert message in err and f"resumed from step {CHUNK}" in err
+    assert (run / "broken_checkpoints" / str(2 * CHUNK)).is_dir()
+
+
+@pytest.mark.parametrize("line, message", [
+    ('{"kind": "train", "env_steps": "256"}', "field 'env_steps': expected an integer "
+                                              "env_steps >= 0, got '256'"),
+    ('{"kind": "val", "env_steps": 256, "success": null}', "field 'success': expected a "
+                                                           "number, got None"),
+    ('["train", 256]', "expected a JSON object {kind, env_steps, metric: number}, got a list"),
+    ('{"env_steps": 256}', "field 'kind' is missing"),
+])
+def test_a_malformed_metrics_jsonl_is_one_line_and_resume_writes_nothing(
+        tmp_path, half_run, line, message, cli_error):
+    from orgnav_jax.plots import CurveError, read_val_curve
+    run = copy_of(half_run, tmp_path / "run")
+    log = run / "metrics.jsonl"
+    n = len(log.read_text().splitlines()) + 1
+    with log.open("a") as f:
+        f.write(line + "\n")
+    before = snapshot(run)
+    msg = cli_error(train_cli.main, ["--run-dir", run, "--resume", "--quiet", "--no-test"])
+    assert msg == f"error: {log} line {n}: {message}"
+    assert snapshot(run) == before
+    with pytest.raises(CurveError, match=re.escape(f"{log} line {n}: {message}")):
+        read_val_curve(run, ["success"])
+
+
+def test_checkpoints_on_scenes_of_other_feature_widths_are_refused_before_a_model_is_built(
+        tmp_path, tiny_dir, half_run, cli_error, monkeypatch):
+    from orgnav_jax import evaluate
+    from orgnav_jax import scenes as S
+    from orgnav_jax.models import navmodel
+    full = S.load(tiny_dir)
+    narrow = tmp_path / "narrow"
+    S.save(full.replace(global_basis=np.asarray(full.global_basis)[:, :8]), narrow)
+    run = copy_of(half_run, tmp_path / "run")
+    before = snapshot(tmp_path)
+
+    def no_model(*a, **kw):
+        raise AssertionError("a model was built")
+    monkeypatch.setattr(navmodel, "NavModel", no_model)
+    # the run's scenes replaced by narrower ones (a moved run resumed with --scenes-dir)
+    msg = cli_error(train_cli.main, ["--run-dir", run, "--resume", "--scenes-dir", narrow,
+                                     "--quiet", "--no-test"])
+    assert msg == (f"error: checkpoint {run / 'checkpoints' / str(2 * CHUNK)} was trained on "
+                   f"scene features of global_dim 16, but scenes {narrow} have global_dim 8: "
+                   "use scenes with the feature widths the model was trained on")
+    text = (run / "config.json").read_text()
+    (run / "config.json").write_text(json.dumps({**json.loads(text),
+                                                 "scenes_dir": str(narrow)}))
+    with pytest.raises(ValueError, match=rf"checkpoint {re.escape(str(run / 'best'))}/\d+ was "
+                                         r"trained on scene features of global_dim 16, but "
+                                         rf"scenes {re.escape(str(narrow))} have global_dim 8"):
+        loop_runs().load_run_model(run)
+    (run / "config.json").write_text(text)
+    monkeypatch.undo()
+    # evaluating the run's model on other scenes: refused before anything is compiled
+    msg = cli_error(evaluate.main, ["--checkpoint", run, "--scenes", narrow, "--split", "val",
+                                    "--quiet", "--out", tmp_path / "res.json"])
+    assert msg.startswith("error: policy baseline was trained on scene features of "
+                          "global_dim 16, but scenes (4 rooms of preset 'tiny') have "
+                          "global_dim 8")
+    assert not (tmp_path / "res.json").exists()
+    after = {k: v for k, v in snapshot(tmp_path).items() if not k.startswith("episodes-")}
+    assert after == before          # (the sampled episode file is written before it)
+
+
+def loop_runs():
+    from orgnav_jax.training import runs
+    return runs

@@ -32,8 +32,7 @@ from orgnav_jax.errors import UserError
 from orgnav_jax.training import scale
 from orgnav_jax.training.driver import (
     Stage, run_population, run_stage)
-from orgnav_jax.training.checkpoints import RunCheckpoints
-from orgnav_jax.training.runs import model_policy, preflight, scenes_name, split_on_device
+from orgnav_jax.training.runs import model_policy, preflight, split_on_device
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 
 
@@ -86,7 +85,9 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     stop_after_chunks ends early (for tests of kill-and-resume)."""
     mesh = scale.make_mesh(cfg.devices)
     scale.check_batch(cfg.num_envs, mesh)
-    scenes = preflight(cfg)     # config ranges, scenes, memory: before anything is written
+    # config ranges, scenes (their widths those of a resumed run's checkpoints), memory:
+    # before anything is written
+    scenes = preflight(cfg, resumed=[cfg.run_dir] if resume else [])
     with scale.open_shared_run_dir(cfg.run_dir, cfg, resume, load_config) as run_dir:
         return _train([cfg], scenes, [run_dir], mesh, resume, progress,
                       stop_after_chunks)[0]
@@ -108,7 +109,7 @@ def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = 
         c.validate()
     mesh = scale.make_mesh(cfg.devices)
     scale.check_batch(cfg.num_envs, mesh)
-    scenes = preflight(cfgs[0])
+    scenes = preflight(cfgs[0], resumed=[c.run_dir for c in cfgs] if resume else [])
     with contextlib.ExitStack() as stack:
         run_dirs = [stack.enter_context(scale.open_shared_run_dir(c.run_dir, c, resume,
                                                                   load_config))
@@ -121,9 +122,6 @@ def _train(cfgs: list[TrainConfig], scenes, run_dirs: list[Path], mesh, resume: 
            progress: bool, stop_after_chunks: int | None,
            population: bool = False) -> list[dict]:
     cfg = cfgs[0]
-    if resume:         # the scenes must have the widths the checkpoints were trained on
-        for run_dir in run_dirs:
-            RunCheckpoints(run_dir).check_scenes(scenes, scenes_name(cfg))
     # one device copy per split in the process (shared with a later evaluation); the
     # test rooms of the memory-mapped set are never read
     train_scenes = split_on_device(cfg, "train")

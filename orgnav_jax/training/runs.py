@@ -64,14 +64,19 @@ def check_training_scenes(scenes, cfg: TrainConfig) -> None:
                              f"training needs {name} rooms {why}")
 
 
-def preflight(cfg: TrainConfig):
+def preflight(cfg: TrainConfig, resumed=()):
     """Checks before a training run writes or compiles anything -> its SceneSet: the
-    config's ranges, train and val rooms in the scenes, and one jitted chunk's memory
-    estimate against the memory available (training.memory.check_memory)."""
+    config's ranges, train and val rooms in the scenes, the scenes' feature widths those
+    the checkpoints of the `resumed` run directories were trained on (before any model
+    is built), and one jitted chunk's memory estimate against the memory available
+    (training.memory.check_memory)."""
     from orgnav_jax.training.memory import check_memory
     cfg.validate()
     scenes = scenes_for(cfg)
     check_training_scenes(scenes, cfg)
+    for run_dir in resumed:
+        if (Path(run_dir) / "checkpoints").is_dir():     # nothing is created elsewhere
+            RunCheckpoints(run_dir).check_scenes(scenes, scenes_name(cfg))
     check_memory(cfg, scenes)
     return scenes
 
