@@ -145,6 +145,7 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
     # the split on device, once per process (shared with training in the same process);
     # the set is memory-mapped and only this split's rooms are read
     scenes = device_split(loaded.scene_preset, loaded.scene_seed, scenes_dir, split)
+    evaluation.check_scenes(loaded.policy, loaded.params, scenes)   # before any file
     if episodes:
         episode_set, ep_path = load_episodes(episodes, scenes), Path(episodes)
         if len(episode_set) == 0:

@@ -254,9 +254,6 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
                 for k in stage.progress_keys:
                     recent[k] = (recent[k] + [record[k]])[-10 * len(members):]
             bar.update(stage.per_chunk)
-            bar.set_postfix(rate=f"{stage.per_chunk * len(members) / dt:.0f}/s",
-                            **{k: f"{np.mean(v):.3f}" for k, v in recent.items()},
-                            best_val=f"{max(m.best[stage.score_keys[0]] for m in members):.3f}")
             if len(timed) == ESTIMATE_AFTER - 1 and chunk < num_chunks and primary:
                 bar.write(wall_time_estimate(stage, chunk, timed, len(members)),
                           file=sys.stderr)
@@ -271,6 +268,10 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
                         m.best = {**{k: val[k] for k in stage.best_keys},
                                   stage.step_name: step}
                         m.ckpt.save(step, mine, {"chunk": chunk, "val": val}, best=True)
+            # after this chunk's val evaluation, so the bar shows the last best_val
+            bar.set_postfix(rate=f"{stage.per_chunk * len(members) / dt:.0f}/s",
+                            **{k: f"{np.mean(v):.3f}" for k, v in recent.items()},
+                            best_val=f"{max(m.best[stage.score_keys[0]] for m in members):.3f}")
             if chunk % cfgs[0].checkpoint_every_chunks == 0 or last:
                 for i, m in enumerate(members):
                     m.ckpt.save(step, member_runner(i), {"chunk": chunk, "best": m.best})
