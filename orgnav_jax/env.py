@@ -118,16 +118,18 @@ def check_episode(scene, start, target, scenes: SceneSet) -> None:
 
 
 def start_episode(scene: jax.Array, start: jax.Array, target: jax.Array,
-                  scenes: SceneSet, params: EnvParams) -> EnvState:
+                  scenes: SceneSet, params: EnvParams, max_steps: int | None = None) -> EnvState:
     """The EnvState at the start of a given episode (scene, LOCAL start state index in
     that room, as in an EpisodeSet, target); EnvState.state is the global flat index.
 
-    The visited set is a trail of at most max(params.step_caps) + 1 states: far smaller
-    than a bitset over S, and an any() over it is cheap.
+    The visited set is a trail of at most max_steps + 1 states: far smaller than a bitset
+    over S, and an any() over it is cheap. max_steps (static) defaults to
+    max(params.step_caps); gymnax_env passes it, its step caps being traced arrays.
     """
     check_episode(scene, start, target, scenes)
     state = (scenes.state_offset[scene] + start).astype(jnp.int32)
-    trail = jnp.full(max(params.step_caps) + 1, -1, jnp.int32).at[0].set(state)
+    steps = max(params.step_caps) if max_steps is None else max_steps
+    trail = jnp.full(steps + 1, -1, jnp.int32).at[0].set(state)
     return EnvState(
         scene=scene, state=state, target=target, steps=jnp.int32(0), path_len=jnp.int32(0),
         prev_action=jnp.int32(-1), last_failed=jnp.bool_(False), revisited=jnp.bool_(False),

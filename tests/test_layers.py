@@ -17,6 +17,7 @@ LAYERS = (
     ("scenes",),
     ("episodes", "offline_episodes", "env", "reference_env"),
     ("models",),
+    ("gymnax_env",),     # env + the models' feature decoding, as a gymnax Environment
     ("evaluation",),
     ("training",),
     ("tpn",),
