@@ -156,3 +156,38 @@ def test_a_silent_coordinator_times_out_with_a_message(cli_error, capsys):
     assert "--distributed-timeout 0: expected an integer >= 1" in cli_error(
         train_cli.main, ["--distributed-timeout", "0", "--coordinator", "a:1",
                          "--num-processes", "2", "--process-id", "1"])
+
+
+def test_evaluation_output_names_do_not_double(tmp_path, tiny_dir, monkeypatch):
+    """runs/eval/<run>-<split>.json for a run on its own scenes; the scenes' name is added
+    for named policies and for a run evaluated on other scenes."""
+    import dataclasses
+    from orgnav_jax import api, evaluation
+    monkeypatch.chdir(tmp_path)
+    run = api.LoadedPolicy(evaluation.random_policy(), None, "myrun", "tiny", tiny_dir,
+                           from_run=True)
+    kw = dict(per_room_type=2, progress=False)
+    assert api.evaluate(run, "val", **kw)["out"] == "runs/eval/myrun-val.json"
+    assert api.evaluate(run, "val", scenes_dir=tiny_dir, **kw)["out"] == \
+        f"runs/eval/myrun-{Path(tiny_dir).name}-val.json"
+    named = dataclasses.replace(run, name="random", from_run=False)
+    assert api.evaluate(named, "val", **kw)["out"] == \
+        f"runs/eval/random-{Path(tiny_dir).name}-val.json"
+
+
+def test_scenes_info_takes_a_preset_name(tmp_path, monkeypatch, capsys, cli_error):
+    from orgnav_jax.scenes.__main__ import main as scenes_main
+    monkeypatch.setenv("ORGNAV_CACHE", str(tmp_path))
+    assert scenes_main(["info", "tiny"]) == 0
+    out = capsys.readouterr().out
+    assert f"preset tiny, seed 0: {tmp_path / 'scenes-tiny-seed0-v'}" in out
+    assert "16 rooms" in out
+    msg = cli_error(scenes_main, ["info", "nope"])
+    assert "expected a SceneSet directory or a preset name (large, paper, small, tiny)" in msg
+
+
+def test_evaluate_names_the_split_it_printed(tmp_path, tiny_dir, capsys):
+    evaluate_cli.main(["--policy", "random", "--scenes", tiny_dir, "--split", "val",
+                       "--episodes-per-room-type", "2", "--quiet",
+                       "--out", str(tmp_path / "r.json")])
+    assert capsys.readouterr().out.startswith("val split, 8 episodes (unseen rooms):")

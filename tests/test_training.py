@@ -179,3 +179,21 @@ def test_trained_agent_beats_random_on_unseen_rooms(tmp_path, tiny_dir):
     loop.train(cfg, progress=False)
     trained, rand = trained_and_random_success(tmp_path / "run", tiny_dir, "test")
     assert trained >= 3 * rand and trained > 0.1, (trained, rand)
+
+
+def test_the_progress_bar_shows_the_last_val(tmp_path, tiny_dir, capsys, monkeypatch):
+    """The bar's best_val is refreshed after the chunk's val evaluation, so its last value
+    is the run's best (it used to lag one evaluation behind)."""
+    import itertools
+    import re
+    counter = itertools.count(1)          # every val evaluation better than the last
+
+    def rising(*_):
+        v = next(counter) / 10
+        return {"success": v, "spl": v / 2}
+    monkeypatch.setattr(loop, "evaluate_on_val", rising)
+    capsys.readouterr()
+    summary = loop.train(small_cfg(tiny_dir, tmp_path / "run"), progress=True)
+    assert summary["best_val"]["success"] > 0.1              # the last eval is the best
+    shown = re.findall(r"best_val=([0-9.]+)", capsys.readouterr().err)
+    assert shown and shown[-1] == f"{summary['best_val']['success']:.3f}", shown[-3:]
