@@ -26,7 +26,7 @@ from orgnav_jax.safe_write import check_output_file
 POLICIES = ("expert", "random")
 
 
-def print_results(name: str, result: dict) -> None:
+def print_results(name: str, result: dict, per_target: bool = False) -> None:
     """Table-1 metrics overall and per room type, then the failure analysis (how the
     episodes ended, revisits and failed moves per episode; docs/evaluation.md), under a
     title naming the split."""
@@ -37,6 +37,10 @@ def print_results(name: str, result: dict) -> None:
     print()
     print(evaluation.format_table(result["per_room_type"], title="per room type:"))
     print()
+    if per_target:
+        rows = {f"{t} ({m['episodes']})": m for t, m in result["per_target"].items()}
+        print(evaluation.format_table(rows, title="per target category (episodes):"))
+        print()
     rows = {name: result["overall"],
             **{f"  {room}": m for room, m in result["per_room_type"].items()}}
     print(evaluation.format_failures(rows, title="failure analysis (success + wrong Done + "
@@ -64,6 +68,8 @@ def parser() -> argparse.ArgumentParser:
                     help="episodes per jitted batch (default 1000; with --tpn as many as "
                          "the per-episode fast weights allow, up to 1000)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    ap.add_argument("--per-target", action="store_true",
+                    help="also print success and SPL per target category")
     from orgnav_jax.tpn.config import TEST_TIME_FIELDS, add_tpn_arguments
     add_tpn_arguments(ap, TEST_TIME_FIELDS)
     return ap
@@ -85,7 +91,7 @@ def main(argv: list[str] | None = None) -> dict:
                           episode_seed=args.episode_seed,
                           per_room_type=args.episodes_per_room_type, seed=args.seed,
                           batch_size=args.batch_size, out=args.out, progress=not args.quiet)
-    print_results(loaded.policy.name, result)
+    print_results(loaded.policy.name, result, per_target=args.per_target)
     print(f"\nresults: {result['out']}\nepisodes: {result['episode_file']}")
     return result
 

@@ -15,7 +15,7 @@ put on each earlier step's memory slot, at every step (a heat map, darker = more
 with the deadlock and update steps marked), and at step S (default: the first update)
 as bars labelled with the action taken there.
 
-    python -m orgnav_jax.plots adjacency RUN_DIR [--out PNG] [--latest]
+    python -m orgnav_jax.plots adjacency RUN_DIR [--out PNG] [--latest] [--json]
 
 draws the learned adjacency A (C x C) of an `org` run (or the fixed prior graph of a `dsp`
 run) with category names on both axes, marks the generator's co-occurrence pairs
@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import re
 import sys
 from collections.abc import Iterable, Mapping, Sequence
@@ -84,9 +85,11 @@ def anchor_pair_report(A) -> dict:
     mean, and the p-value of that mean against random sets of as many pairs. The mean over
     the other same-room-type pairs (constants.TARGETS) separates "anchored objects are
     related" from "objects of one room type are".
+    anchor_auc: the probability that an anchor pair's value exceeds that of another
+    same-room-type pair (ties count half; 0.5 = chance, 1 = every anchor pair above).
     -> {"offdiag_mean", "offdiag_std", "same_room_mean", "pairs": [{"pair", "kind",
     "value", "percentile", "higher"}], "anchor": {"n", "higher", "mean", "p_value"},
-    "sibling": {...}, "reflects": anchor p_value < 0.05}."""
+    "sibling": {...}, "anchor_auc", "reflects": anchor p_value < 0.05}."""
     A = np.asarray(A, np.float64)
     C = len(CATEGORIES)
     if A.shape != (C, C):
@@ -96,7 +99,8 @@ def anchor_pair_report(A) -> dict:
     off_mean, off_std = float(upper.mean()), float(upper.std())
     direct, siblings = anchor_pairs()
     room = sorted(_same_room_pairs() - set(direct) - set(siblings))
-    room_mean = float(np.mean([S[CATEGORY_INDEX[a], CATEGORY_INDEX[b]] for a, b in room]))
+    room_vals = np.array([S[CATEGORY_INDEX[a], CATEGORY_INDEX[b]] for a, b in room])
+    room_mean = float(room_vals.mean())
     pairs, groups = [], {}
     for kind, group in (("anchor", direct), ("sibling", siblings)):
         vals = np.array([S[CATEGORY_INDEX[a], CATEGORY_INDEX[b]] for a, b in group])
@@ -105,8 +109,12 @@ def anchor_pair_report(A) -> dict:
                           "percentile": float((upper < v).mean()), "higher": bool(v > off_mean)})
         groups[kind] = {"n": len(vals), "higher": int((vals > off_mean).sum()),
                         "mean": float(vals.mean()), "p_value": _subset_p_value(vals, upper)}
+    anchor_vals = np.array([S[CATEGORY_INDEX[a], CATEGORY_INDEX[b]] for a, b in direct])
+    diff = anchor_vals[:, None] - room_vals[None, :]
+    auc = float((diff > 0).mean() + 0.5 * (diff == 0).mean())
     return {"offdiag_mean": off_mean, "offdiag_std": off_std, "same_room_mean": room_mean,
-            "pairs": pairs, **groups, "reflects": bool(groups["anchor"]["p_value"] < 0.05)}
+            "pairs": pairs, **groups, "anchor_auc": auc,
+            "reflects": bool(groups["anchor"]["p_value"] < 0.05)}
 
 
 def format_report(rep: dict) -> str:
@@ -118,6 +126,8 @@ def format_report(rep: dict) -> str:
         g = rep[kind]
         lines.append(f"{kind} pairs: {g['higher']}/{g['n']} above the off-diagonal mean, "
                      f"mean {g['mean']:+.4f} (p = {g['p_value']:.2g} against random pairs)")
+    lines.append(f"AUC of anchor pairs against other same-room-type pairs: "
+                 f"{rep['anchor_auc']:.2f} (0.5 = chance)")
     for p in rep["pairs"]:
         where = "above" if p["higher"] else "below"
         lines.append(f"  {p['kind']:7s} {p['pair']:28s} {p['value']:+.4f}  "
@@ -539,6 +549,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="PNG path (default RUN_DIR/adjacency.png)")
     p.add_argument("--latest", action="store_true",
                    help="use the latest checkpoint instead of the best-on-val one")
+    p.add_argument("--json", action="store_true",
+                   help="print the report as one JSON object (anchor p-value, anchor_auc, "
+                        "pairs) on stdout; the 'wrote' line goes to stderr")
     e = sub.add_parser("episode", help="top view of one episode of a run (path, target, "
                                        "deadlock steps, TPN updates)")
     e.add_argument("run_dir", help="a training run or a TPN (stage 2) run directory")
@@ -601,8 +614,13 @@ def main(argv=None) -> int:
         return 2
     title = f"{'learned ORG adjacency' if name == 'org' else 'D-SP prior graph'}: {args.run_dir}"
     plot_adjacency(A, out, title)
-    print(f"wrote {out}")
-    print(format_report(anchor_pair_report(A)))
+    report = anchor_pair_report(A)
+    if args.json:
+        print(f"wrote {out}", file=sys.stderr)
+        print(json.dumps(dict(report, run_dir=str(args.run_dir), graph=name)))
+    else:
+        print(f"wrote {out}")
+        print(format_report(report))
     return 0
 
 

@@ -332,3 +332,66 @@ def test_render_ascii(sample_rooms):
     # every reachable cell is '.' unless an object is drawn on it
     assert np.isin(grid[r.reachable], [".", "*"]).all()
     assert (grid[r.wall] != ".").all()
+
+
+# ------------------------------------------------------------------ the co-occurrence knob
+
+def _anchored(room) -> np.ndarray:
+    """(K,) bool: the room's objects whose category has anchors (catalog.ANCHORS)."""
+    return np.array([K.CATEGORIES[c] in catalog.ANCHORS for c in room.obj_category])
+
+
+@pytest.mark.parametrize("floorplan", [1, 2, 201, 301, 302, 303])
+def test_the_anchor_knob_moves_only_anchored_objects(floorplan):
+    """Same seed, P = 0, 0.85, 1: the same walls, furniture, reachable cells and object
+    list; objects without anchors in the same places; only anchored ones may move."""
+    rooms = {p: layout.generate_room(0, floorplan, anchor_probability=p)
+             for p in (0.0, 0.85, 1.0)}
+    ref = rooms[0.85]                                   # the default: unchanged
+    np.testing.assert_array_equal(ref.obj_center, layout.generate_room(0, floorplan).obj_center)
+    anchored = _anchored(ref)
+    for room in rooms.values():
+        for field in ("wall", "furniture", "reachable", "obj_category", "block_height"):
+            np.testing.assert_array_equal(getattr(room, field), getattr(ref, field), field)
+        np.testing.assert_array_equal(room.obj_center[~anchored], ref.obj_center[~anchored])
+
+
+def test_p1_puts_anchored_objects_by_an_anchor_and_p0_ignores_anchors():
+    """Over the small preset's kitchens, living rooms and bedrooms: at P = 1 every
+    anchored object whose room has an anchor sits within 1.75 m of one (at least 95%:
+    a few rooms have no free surface near any);
+    at P = 0 a clearly smaller share does (placement ignores anchors)."""
+    CATEGORIES, ANCHORS, GRID_SIZE = K.CATEGORIES, catalog.ANCHORS, K.GRID_SIZE
+
+    def share_near(p):
+        near = total = 0
+        for fp in [*range(1, 11), *range(201, 211), *range(301, 311)]:
+            room = layout.generate_room(0, fp, anchor_probability=p)
+            cats = [CATEGORIES[c] for c in room.obj_category]
+            for k, name in enumerate(cats):
+                anchors = [room.obj_center[j] for j, a in enumerate(cats)
+                           if a in ANCHORS.get(name, ())]
+                if not anchors:
+                    continue
+                d = min(np.hypot(*(room.obj_center[k][[0, 2]] - a[[0, 2]])) for a in anchors)
+                near += d <= 1.5 + GRID_SIZE
+                total += 1
+        return near / total
+    near1, near0 = share_near(1.0), share_near(0.0)
+    assert near1 >= 0.95, near1          # (a few rooms have no free surface by one)
+    assert near0 < near1 - 0.2, (near0, near1)
+
+
+def test_scenes_build_records_the_anchor_probability(tmp_path, capsys):
+    from orgnav_jax.scenes import load
+    from orgnav_jax.scenes.__main__ import main as scenes_main
+    out = tmp_path / "p0"
+    assert scenes_main(["build", "--preset", "tiny", "--anchor-probability", "0",
+                        "--out", str(out)]) == 0
+    assert load(out).meta("anchor_probability") == 0.0
+    capsys.readouterr()
+    assert scenes_main(["info", str(out)]) == 0
+    assert "anchor probability 0 " in capsys.readouterr().out
+    with pytest.raises(ValueError, match="anchor_probability 1.5, expected 0 <= p <= 1"):
+        scenes_main(["build", "--preset", "tiny", "--anchor-probability", "1.5",
+                     "--out", str(tmp_path / "bad")])

@@ -223,6 +223,27 @@ def test_anchor_pair_report():
     assert rep2["anchor"]["p_value"] < 1e-3 and rep2["sibling"]["p_value"] > 0.05
     noise = np.random.default_rng(3).standard_normal((C, C))
     assert not anchor_pair_report(noise)["reflects"]
+    # AUC of anchor pairs against the other same-room-type pairs
+    assert rep2["anchor_auc"] == 1.0
+    n = rep["anchor"]["n"]
+    assert rep["anchor_auc"] == pytest.approx((1 + 0.5 * (n - 1)) / n)
+    assert abs(anchor_pair_report(noise)["anchor_auc"] - 0.5) < 0.25
+
+
+def test_adjacency_json_has_the_report_keys(tmp_path, monkeypatch, capsys):
+    import json
+
+    from orgnav_jax import plots
+    A = np.eye(C) + cooccurrence_anchor_matrix()
+    monkeypatch.setattr(plots, "run_adjacency", lambda run_dir, best=True: (A, "org"))
+    run = tmp_path / "org-s0"
+    run.mkdir()
+    assert plots.main(["adjacency", str(run), "--json"]) == 0
+    out, err = capsys.readouterr()
+    report = json.loads(out)
+    assert {"anchor", "sibling", "anchor_auc", "pairs", "reflects", "run_dir"} <= set(report)
+    assert {"p_value", "n", "higher", "mean"} <= set(report["anchor"])
+    assert report["anchor_auc"] == 1.0 and f"wrote {run / 'adjacency.png'}" in err
 
 
 def cooccurrence_anchor_matrix():

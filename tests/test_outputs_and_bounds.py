@@ -191,3 +191,16 @@ def test_evaluate_names_the_split_it_printed(tmp_path, tiny_dir, capsys):
                        "--episodes-per-room-type", "2", "--quiet",
                        "--out", str(tmp_path / "r.json")])
     assert capsys.readouterr().out.startswith("val split, 8 episodes (unseen rooms):")
+
+
+def test_per_target_success_sums_to_the_overall(tmp_path, tiny_dir, capsys):
+    result = evaluate_cli.main(["--policy", "random", "--scenes", tiny_dir, "--split", "val",
+                                "--episodes-per-room-type", "100", "--quiet", "--per-target",
+                                "--out", str(tmp_path / "r.json")])
+    per, overall = result["per_target"], result["overall"]
+    assert sum(m["episodes"] for m in per.values()) == overall["episodes"]
+    weighted = sum(m["success"] * m["episodes"] for m in per.values()) / overall["episodes"]
+    assert weighted == pytest.approx(overall["success"])
+    out = capsys.readouterr().out
+    assert "per target category (episodes):" in out
+    assert all(f"{t} ({m['episodes']})" in out for t, m in per.items())

@@ -2,6 +2,7 @@
 
     python -m orgnav_jax.scenes build --preset small --out data/small [--seed 0]
     python -m orgnav_jax.scenes build --preset large --num-rooms 10 --out data/large10
+    python -m orgnav_jax.scenes build --preset small --anchor-probability 0 --out data/p0
     python -m orgnav_jax.scenes info data/small
     python -m orgnav_jax.scenes info small            # a preset's cached set (built if new)
     python -m orgnav_jax.scenes show 201 [--seed 0] [--room-sizes thor]  # ASCII top view
@@ -47,6 +48,9 @@ def main(argv: list[str] | None = None) -> int:
                    "(default: the preset's)")
     b.add_argument("--appearance-dim", type=int, help="d, appearance feature width "
                    "(default: the preset's)")
+    b.add_argument("--anchor-probability", type=float, metavar="P",
+                   help="how often an object with anchors is placed by one (0: anywhere, "
+                        "1: always; default 0.85, the generator's): the co-occurrence knob")
     b.add_argument("--json", action="store_true", help="also print the summary as JSON")
     i = sub.add_parser("info", help="summarize a saved benchmark")
     i.add_argument("path", help="a SceneSet directory, or a preset name for its cached set "
@@ -78,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
         overrides = {k: v for k, v in (("rooms_per_type", tuple(args.rooms or ()) or None),
                                        ("num_rooms", args.num_rooms),
                                        ("global_dim", args.global_dim),
-                                       ("appearance_dim", args.appearance_dim))
+                                       ("appearance_dim", args.appearance_dim),
+                                       ("anchor_probability", args.anchor_probability))
                      if v is not None}
         preset = get_preset(args.preset, **overrides)
         t0 = time.perf_counter()

@@ -14,6 +14,7 @@ from orgnav_jax.constants import (
 )
 from orgnav_jax.scenes import detector, geometry, global_view
 from orgnav_jax.scenes.flat import flat_expert_tables
+from orgnav_jax.scenes.catalog import ANCHOR_PROBABILITY
 from orgnav_jax.scenes.layout import Room, generate_room
 from orgnav_jax.scenes.presets import ScenePreset, get_preset
 from orgnav_jax.scenes.sceneset import (
@@ -55,10 +56,12 @@ def room_detections(room: Room, seed: int, cells: np.ndarray, poses: np.ndarray)
 
 
 def room_arrays(seed: int, floorplan: int, split: str, room: Room | None = None,
-                room_sizes: str = "default") -> RoomArrays:
-    """Everything precomputed for one room (pure function of seed, floorplan and the
-    room-size profile)."""
-    room = room if room is not None else generate_room(seed, floorplan, room_sizes=room_sizes)
+                room_sizes: str = "default",
+                anchor_probability: float = ANCHOR_PROBABILITY) -> RoomArrays:
+    """Everything precomputed for one room (pure function of seed, floorplan, the
+    room-size profile and the anchor probability)."""
+    room = room if room is not None else generate_room(
+        seed, floorplan, room_sizes=room_sizes, anchor_probability=anchor_probability)
     cells = geometry.reachable_cells(room.reachable)
     poses = geometry.state_poses(cells)
     seen, dist, det_box, det_conf, app_code = room_detections(room, seed, cells, poses)
@@ -145,11 +148,14 @@ def build(preset: str | ScenePreset = "small", seed: int = 0, *, progress: bool 
                          "room by room: python -m orgnav_jax.scenes build --preset "
                          f"{p.name} --out DIR (or scenes.build_to), then load DIR")
     plans = p.floorplans()
-    rooms = [room_arrays(seed, fp, split, room_sizes=p.room_sizes)
+    rooms = [room_arrays(seed, fp, split, room_sizes=p.room_sizes,
+                         anchor_probability=p.anchor_probability)
              for fp, _, split in tqdm(plans, desc=f"rooms ({p.name})", disable=not progress,
                                       unit="room")]
     info = (("format", FORMAT_NAME), ("version", FORMAT_VERSION), ("preset", p.name),
             ("seed", int(seed)), ("rooms_per_type", tuple(p.rooms_per_type)))
     if p.room_sizes != "default" or p.num_rooms is not None:
         info += (("room_sizes", p.room_sizes), ("num_rooms", len(plans)))
+    if p.anchor_probability != ANCHOR_PROBABILITY:     # (default sets keep their info)
+        info += (("anchor_probability", float(p.anchor_probability)),)
     return stack_rooms(rooms, info=info, **{k: v for k, v in feature_bases(p).items()})

@@ -85,9 +85,10 @@ class _Builder:
     """Mutable workspace while one room is laid out."""
 
     def __init__(self, rng: np.random.Generator, room_type: str,
-                 room_size: dict = ROOM_SIZE):
+                 room_size: dict = ROOM_SIZE, anchor_probability: float = ANCHOR_PROBABILITY):
         self.rng = rng
         self.room_type = room_type
+        self.anchor_probability = anchor_probability
         (r0, r1), (c0, c1) = room_size[room_type]
         rows, cols = int(rng.integers(r0, r1 + 1)), int(rng.integers(c0, c1 + 1))
         self.wall = np.ones((rows + 2, cols + 2), bool)
@@ -205,7 +206,10 @@ class _Builder:
                          cells: np.ndarray | None = None) -> bool:
         """Put one instance on a furniture top of the given kinds (or on given cells).
 
-        Objects with anchors go near an anchor instance with ANCHOR_PROBABILITY.
+        Objects with anchors go near an anchor instance with probability
+        self.anchor_probability (default ANCHOR_PROBABILITY). The draws are the same for
+        every probability (one coin, one choice over the same cells), so the knob moves
+        only where anchored objects land.
         """
         if cells is None:
             kind_ids = [FURNITURE_INDEX[k] for k in kinds]
@@ -217,7 +221,7 @@ class _Builder:
         anchor_mask = np.zeros(self.wall.shape, bool)
         for a in ANCHORS.get(category, ()):
             anchor_mask |= self.object_mask(a)
-        if anchor_mask.any() and self.rng.random() < ANCHOR_PROBABILITY:
+        if anchor_mask.any() and self.rng.random() < self.anchor_probability:
             d = np.array([_min_dist(anchor_mask, i, j) for i, j in cand])
             weights = np.exp(-(d - d.min()) / 1.5) * (d > 0)
             if weights.sum() == 0:
@@ -450,13 +454,20 @@ def _clutter(b: _Builder) -> None:
 
 
 def generate_room(seed: int, floorplan: int, max_tries: int = 50,
-                  room_sizes: str = "default") -> Room:
-    """Lay out one room deterministically from (seed, floorplan, room_sizes).
+                  room_sizes: str = "default",
+                  anchor_probability: float = ANCHOR_PROBABILITY) -> Room:
+    """Lay out one room deterministically from (seed, floorplan, room_sizes,
+    anchor_probability).
 
     room_sizes: a ROOM_SIZE_PROFILES name: "default" (the tiny/small/paper presets) or
-    "thor" (AI2-THOR's room sizes, preset 'large'). Returns a Room whose reachable-cell
-    count lies in the profile's reachable range for its type.
+    "thor" (AI2-THOR's room sizes, preset 'large'). anchor_probability: how often an
+    object with anchors (catalog.ANCHORS) is put next to one (0: anywhere on its
+    surfaces, 1: always by an anchor when the room has one); the same seed gives the same
+    room apart from where those objects go. Returns a Room whose reachable-cell count
+    lies in the profile's reachable range for its type.
     """
+    if not 0.0 <= anchor_probability <= 1.0:
+        raise ValueError(f"anchor_probability {anchor_probability!r}: expected 0 <= p <= 1")
     room_type = room_type_of(floorplan)
     assert room_type in ROOM_TYPES
     if room_sizes not in ROOM_SIZE_PROFILES:
@@ -466,7 +477,7 @@ def generate_room(seed: int, floorplan: int, max_tries: int = 50,
     lo, hi = reachable_range[room_type]
     for attempt in range(max_tries):
         rng = np.random.default_rng([seed, floorplan, attempt])
-        b = _Builder(rng, room_type, room_size)
+        b = _Builder(rng, room_type, room_size, anchor_probability)
         if room_type != "bathroom" and rng.random() < 0.5:
             _partition_wall(b)
         try:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 from orgnav_jax.constants import FLOORPLAN_OFFSET, ROOM_TYPES, SPLITS
+from orgnav_jax.scenes.catalog import ANCHOR_PROBABILITY
 
 
 @dataclasses.dataclass(frozen=True)
@@ -17,7 +18,9 @@ class ScenePreset:
       16-bit codes and projections; such sets are written to disk room by room
       (scenes.build_to), never built in memory;
     num_rooms: only this many of the rooms, taken in turn from each room type and,
-      within a type, from each split (see floorplans); None = all of them."""
+      within a type, from each split (see floorplans); None = all of them;
+    anchor_probability: how often an object with anchors is placed by one (the
+      co-occurrence knob; catalog.ANCHOR_PROBABILITY by default)."""
     name: str
     rooms_per_type: tuple[int, int, int] = (20, 5, 5)
     global_dim: int = 32
@@ -25,9 +28,13 @@ class ScenePreset:
     room_sizes: str = "default"
     raw: bool = False
     num_rooms: int | None = None
+    anchor_probability: float = ANCHOR_PROBABILITY
 
     def __post_init__(self):
         from orgnav_jax.scenes.layout import ROOM_SIZE_PROFILES
+        if not 0.0 <= self.anchor_probability <= 1.0:
+            raise ValueError(f"preset {self.name!r}: anchor_probability "
+                             f"{self.anchor_probability!r}, expected 0 <= p <= 1")
         limits = (20, 5, 5)
         if len(self.rooms_per_type) != 3:
             raise ValueError(f"preset {self.name!r}: rooms_per_type must be (train, val, "

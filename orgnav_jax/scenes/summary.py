@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from orgnav_jax.constants import CATEGORIES, ROOM_TYPES, SPLITS, TARGETS, category_index
+from orgnav_jax.scenes.catalog import ANCHOR_PROBABILITY
+from orgnav_jax.scenes.presets import SCENE_PRESETS
 from orgnav_jax.scenes.sceneset import PER_STATE_FIELDS, UNREACHABLE, SceneSet
 
 
@@ -37,6 +39,9 @@ def summarize(scenes: SceneSet) -> dict:
                     for f in PER_STATE_FIELDS) / max(scenes.num_states, 1)
     return {
         "preset": scenes.meta("preset"), "seed": scenes.meta("seed"),
+        "anchor_probability": scenes.meta("anchor_probability", ANCHOR_PROBABILITY
+                                          if scenes.meta("preset") in SCENE_PRESETS
+                                          else None),
         "num_scenes": scenes.num_scenes, "states_total": scenes.num_states,
         "rooms": rooms,
         "states": {"min": int(n_states.min()), "median": float(np.median(n_states)),
@@ -60,6 +65,10 @@ def format_summary(s: dict) -> str:
     """The dict from `summarize` as a human table."""
     lines = [f"SceneSet preset={s['preset']} seed={s['seed']}: {s['num_scenes']} rooms, "
              f"{s['states_total']} states (flat, unpadded)"]
+    if s.get("anchor_probability") is not None:
+        lines.append(f"anchor probability {s['anchor_probability']:g} (objects placed by "
+                     "their anchors; the generator's default is "
+                     f"{ANCHOR_PROBABILITY:g})")
     lines.append(f"{'rooms':<8}" + "".join(f"{t:>13}" for t in ROOM_TYPES))
     for split, per in s["rooms"].items():
         lines.append(f"{split:<8}" + "".join(f"{per[t]:>13}" for t in ROOM_TYPES))
