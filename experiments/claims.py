@@ -186,6 +186,62 @@ def table(results: dict, episodes: dict, lr: str) -> str:
     return "\n".join(lines) + "\n\n" + full_model_best(results, lr)
 
 
+def category_groups() -> dict[str, list[str]]:
+    """The target categories by their part in the generator's co-occurrence rules:
+    anchored small objects (catalog.ANCHORS keys), anchors (what they are placed by, not
+    themselves anchored) and the others."""
+    from orgnav_jax.constants import CATEGORIES
+    from orgnav_jax.scenes.catalog import ANCHORS
+    anchored = [c for c in CATEGORIES if c in ANCHORS]
+    anchors = [c for c in CATEGORIES if c not in ANCHORS and
+               any(c in a for a in ANCHORS.values())]
+    return {"anchored": anchored, "anchors": anchors,
+            "others": [c for c in CATEGORIES if c not in anchored + anchors]}
+
+
+def per_category(out: Path, row: str = "org", ref: str = "baseline") -> str:
+    """Markdown: `row` vs `ref` success per target category and per group
+    (category_groups), paired by seed, with 95% t intervals (test split)."""
+    from orgnav_jax.constants import CATEGORIES
+    spec = run_table.read_spec(out / "spec.json")
+    docs = {}
+    for r in (row, ref):
+        for seed in spec["seeds"]:
+            path = run_table.results_path(out, r, seed)
+            if path.exists():
+                docs.setdefault(r, {})[str(seed)] = json.loads(path.read_text())
+    seeds = sorted(set(docs.get(row, {})) & set(docs.get(ref, {})), key=int)
+    if not seeds:
+        return f"{row} vs {ref}: no seed has both rows yet\n"
+
+    def rate(doc, cats) -> float | None:
+        rec = doc["per_episode"]
+        idx = {CATEGORIES.index(c) for c in cats}
+        hits = [o == 0 for o, t in zip(rec["outcome"], rec["target"]) if t in idx]
+        return float(np.mean(hits)) if hits else None
+
+    lines = [f"{row} vs {ref}, test success (points) paired over seeds "
+             f"{','.join(seeds)}:", "",
+             "| group | category | episodes / seed | " + f"{ref} | {row} | difference: "
+             "mean [95% t interval] | verdict |", "|---|---|---|---|---|---|---|"]
+    for group, cats in category_groups().items():
+        for cat in [*cats, f"all {group}"]:
+            members = cats if cat.startswith("all ") else [cat]
+            a = [rate(docs[row][s], members) for s in seeds]
+            b = [rate(docs[ref][s], members) for s in seeds]
+            if any(x is None for x in a + b):
+                continue
+            n_ep = sum(t in {CATEGORIES.index(c) for c in members}
+                       for t in docs[row][seeds[0]]["per_episode"]["target"])
+            d = 100 * (np.array(a) - np.array(b))
+            st = statistics(d, 1)
+            name = f"**{cat}**" if cat.startswith("all ") else cat
+            lines.append(f"| {group} | {name} | {n_ep} | {100 * np.mean(b):.1f} | "
+                         f"{100 * np.mean(a):.1f} | {st['mean']:+.1f} "
+                         f"{interval_text(st['interval'])} | {st['verdict']} |")
+    return "\n".join(lines) + "\n"
+
+
 def read_table_dir(out: Path) -> tuple[dict, dict, dict]:
     """A table directory's spec and, from its runs' files, results[row][seed] = overall
     summary and episodes[row][seed] = per-episode arrays (success, spl). Every summary is
@@ -260,11 +316,17 @@ def check(out: Path) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("table", help="a run_table.py output directory (with spec.json)")
+    ap.add_argument("--per-category", nargs=2, metavar=("ROW", "REF"), default=None,
+                    help="print ROW vs REF success per target category and group "
+                         "(anchored small objects, anchors, others), e.g. org baseline")
     ap.add_argument("--check", action="store_true",
                     help="recompute results.json, table.md and claims.md from the runs' "
                          "files; exit 1 on any difference, write nothing")
     args = ap.parse_args(argv)
     out = Path(args.table)
+    if args.per_category:
+        print(per_category(out, *args.per_category))
+        return 0
     if args.check:
         bad = check(out)
         for line in bad:

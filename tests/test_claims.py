@@ -105,6 +105,20 @@ def test_claims_table_check_and_tampering(claims, table_dir, capsys):
         claims.main(["--check", str(table_dir)])
 
 
+def test_per_category_groups_and_table(claims, table_dir):
+    groups = claims.category_groups()
+    assert "Toaster" in groups["anchored"] and "Laptop" in groups["anchored"]
+    assert "StoveBurner" in groups["anchors"] and "Television" in groups["anchors"]
+    assert "Fridge" in groups["others"]
+    assert sorted(sum(groups.values(), [])) == sorted(__import__(
+        "orgnav_jax.constants", fromlist=["CATEGORIES"]).CATEGORIES)
+    text = claims.per_category(table_dir, "il", "baseline")
+    assert "| anchored | **all anchored** |" in text and "| others | Fridge |" in text
+    # the groups' rates are over the episodes of their categories: all groups together
+    # give the overall difference (+10 points in every seed for il vs baseline)
+    assert "il vs baseline, test success (points) paired over seeds 0,1,2" in text
+
+
 def test_run_table_spec_is_checked(tmp_path):
     sys.path.insert(0, str(EXPERIMENTS))
     import run_table
@@ -120,3 +134,12 @@ def test_run_table_spec_is_checked(tmp_path):
         bad.write_text(json.dumps(dict(spec, **change)))
         with pytest.raises(ValueError, match=match):
             run_table.read_spec(bad)
+
+
+def test_committed_tables_agree_with_their_runs(claims):
+    """`claims.py --check` on every committed table: its results.json, table.md and
+    claims.md are what its runs' evidence files give."""
+    tables = sorted(p.parent for p in (EXPERIMENTS / "results").glob("table_*/spec.json"))
+    assert tables, "no committed table with a spec.json"
+    for table in tables:
+        assert claims.check(table) == [], table
