@@ -235,7 +235,7 @@ def test_adjacency_json_has_the_report_keys(tmp_path, monkeypatch, capsys):
 
     from orgnav_jax import plots
     A = np.eye(C) + cooccurrence_anchor_matrix()
-    monkeypatch.setattr(plots, "run_adjacency", lambda run_dir, best=True: (A, "org"))
+    monkeypatch.setattr(plots.adjacency, "run_adjacency", lambda run_dir, best=True: (A, "org"))
     run = tmp_path / "org-s0"
     run.mkdir()
     assert plots.main(["adjacency", str(run), "--json"]) == 0
