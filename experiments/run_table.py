@@ -70,6 +70,7 @@ TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": 
 
 
 SPEC_KEYS = {"out": str, "rows": list, "seeds": list, "config": dict, "tpn": dict}
+SPEC_OPTIONAL = {"about": str, "population": bool}
 
 
 def results_path(out: Path, row: str, seed: int | str) -> Path:
@@ -162,6 +163,9 @@ def train_row_population(row: str, seeds: list[int], out: Path, overrides: dict)
         return
     cfg = get_config(row, **{**overrides, "run_dir": str(out / "runs" / row)})
     api.train_seeds(cfg, todo, resume=all(started), progress=sys.stderr.isatty())
+    for s in todo:
+        record_provenance(out / "runs" / f"{row}-s{s}",
+                          f"trained in one program with seeds {' '.join(map(str, todo))}")
 
 
 def row_name(text: str) -> str:
@@ -253,9 +257,12 @@ def read_spec(path: str | Path) -> dict:
         if key not in spec or not isinstance(spec[key], kind):
             raise ValueError(f"table spec {path}: field {key!r} missing or not a "
                              f"{kind.__name__}")
-    unknown = sorted(set(spec) - set(SPEC_KEYS) - {"about"})
+    unknown = sorted(set(spec) - set(SPEC_KEYS) - set(SPEC_OPTIONAL))
     if unknown:
         raise ValueError(f"table spec {path}: unknown field(s) {unknown}")
+    for key, kind in SPEC_OPTIONAL.items():
+        if key in spec and not isinstance(spec[key], kind):
+            raise ValueError(f"table spec {path}: field {key!r} is not a {kind.__name__}")
     try:
         for row in spec["rows"]:
             row_name(row)
@@ -302,9 +309,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--population", action="store_true",
                     help="train the seeds of each navigation row in one program")
     ap.add_argument("--spec", default=None,
-                    help="a table spec (JSON: out, rows, seeds, config, tpn), e.g. "
-                         "experiments/tables/table_5m.json; replaces --rows, --seeds, "
-                         "--out, --tpn-episodes and the config options")
+                    help="a table spec (JSON: out, rows, seeds, config, tpn, and optionally "
+                         "population), e.g. experiments/tables/table_5m.json; replaces "
+                         "--rows, --seeds, --out, --tpn-episodes, --population and the "
+                         "config options")
+    ap.add_argument("--only", nargs="+", default=None, metavar="ROW",
+                    help="with --spec: work on these rows of the spec now (the table files "
+                         "are still rebuilt from every run of the spec)")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
     overrides = {k: v for k, v in overrides_from_args(args).items()
@@ -313,12 +324,20 @@ def main(argv: list[str] | None = None) -> None:
     spec = None
     if args.spec:
         given = [a for a in (argv if argv is not None else sys.argv[1:])
-                 if a.startswith("--") and a.split("=")[0] not in ("--spec", "--population")]
+                 if a.startswith("--") and a.split("=")[0] not in ("--spec", "--only")]
         if given:
             ap.error(f"--spec defines the table; drop {given[0].split('=')[0]}")
         spec = read_spec(args.spec)
         args.rows, args.seeds, args.out = spec["rows"], spec["seeds"], spec["out"]
         overrides, tpn_fields = spec["config"], spec["tpn"]
+        args.population = spec.get("population", False)
+        if args.only:
+            bad = [r for r in args.only if r not in spec["rows"]]
+            if bad:
+                ap.error(f"--only {bad[0]}: not a row of {args.spec}")
+            args.rows = args.only
+    elif args.only:
+        ap.error("--only goes with --spec")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with RunLock(out):        # one table writer per --out (results.json is rewritten)
@@ -329,18 +348,20 @@ def main(argv: list[str] | None = None) -> None:
         saved = out / "results.json"
         results: dict[str, dict[str, dict]] = (json.loads(saved.read_text())
                                                if saved.exists() and spec is None else {})
-        if args.population:
-            for base in dict.fromkeys(row.partition("+")[0] for row in args.rows
-                                      if row != "random"):
+        # seed-major (a partial table covers all rows); with a population, row-major:
+        # all seeds of a row train in one program, then are tested, then the next row
+        order = ([(seed, row) for row in args.rows for seed in args.seeds] if args.population
+                 else [(seed, row) for seed in args.seeds for row in args.rows])
+        for seed, row in order:
+            base = row.partition("+")[0]
+            if args.population and base != "random" and seed == args.seeds[0]:
                 train_row_population(base, args.seeds, out, overrides)
-        for seed in args.seeds:                 # seed-major: a partial table covers all rows
-            for row in args.rows:
-                metrics = (run_tpn(row, seed, out, overrides, tpn_fields) if "+" in row
-                           else run_one(row, seed, out, overrides))
-                results.setdefault(row, {})[str(seed)] = metrics
-                print(f"{row} seed {seed}: " + ", ".join(f"{m} {100 * metrics[m]:.1f}"
-                                                          for m in METRICS), flush=True)
-                write_outputs(out, results, spec)
+            metrics = (run_tpn(row, seed, out, overrides, tpn_fields) if "+" in row
+                       else run_one(row, seed, out, overrides))
+            results.setdefault(row, {})[str(seed)] = metrics
+            print(f"{row} seed {seed}: " + ", ".join(f"{m} {100 * metrics[m]:.1f}"
+                                                      for m in METRICS), flush=True)
+            write_outputs(out, results, spec)
         print(write_outputs(out, results, spec))
         curves = write_curves(out, results)
         if curves:

@@ -129,7 +129,8 @@ def test_run_table_spec_is_checked(tmp_path):
     for change, match in (({"rows": ["nope"]}, "field 'rows': unknown row 'nope'"),
                           ({"seeds": [-1]}, "field 'seeds'"),
                           ({"config": {"lr": -1.0}}, "'lr'"),
-                          ({"extra": 1}, r"unknown field\(s\) \['extra'\]")):
+                          ({"extra": 1}, r"unknown field\(s\) \['extra'\]"),
+                          ({"population": "yes"}, "field 'population' is not a bool")):
         bad = tmp_path / "spec.json"
         bad.write_text(json.dumps(dict(spec, **change)))
         with pytest.raises(ValueError, match=match):
