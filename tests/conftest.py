@@ -1,7 +1,6 @@
-"""Shared fixtures for the scene tests.
-
-The "tiny" benchmark (16 rooms) is built at most once per session; most tests use
-single generated rooms (fast) or small hand-made rooms instead.
+"""Fixtures every test file shares: the "tiny" benchmark (16 rooms), built at most once
+per session and saved once (tiny_dir), sample generated rooms, and cli_error (a CLI's
+one-line error and exit code 2).
 """
 
 from __future__ import annotations
