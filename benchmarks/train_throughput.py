@@ -211,6 +211,39 @@ def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
             "_rollout_len": cfg.rollout_len}
 
 
+def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
+                  repeats: int, first_order: bool = False) -> dict:
+    """SAVN training (training/savn.py) at the preset's widths: env-steps/s of the jitted
+    chunk, counting the env steps the episodes really took (they end at Done or the
+    30-step cap; the chunk steps every episode to the cap, frozen after its end) and the
+    episode slots (num_envs x episode_cap per update) apart."""
+    from orgnav_jax.training import savn
+    cfg = get_config(preset, model=model_name, num_envs=num_envs, updates_per_chunk=updates,
+                     savn=True, savn_first_order=first_order)
+    model = build_model(cfg, scenes)
+    optimizer = make_optimizer(cfg)
+    learned = savn.build_learned_loss()
+    runner = savn.init_savn_runner(cfg, model, learned, optimizer, scenes,
+                                   jax.random.PRNGKey(cfg.seed))
+    chunk = savn.make_savn_chunk(cfg, model, learned, optimizer)
+    t0 = time.perf_counter()
+    compiled = chunk.trace(runner, scenes).lower().compile()
+    compile_s = time.perf_counter() - t0
+    best, real = float("inf"), 0.0
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        _, metrics = jax.block_until_ready(compiled(runner, scenes))
+        dt = time.perf_counter() - t0
+        if dt < best:
+            best, real = dt, float(metrics["env_steps_real"])
+    slots = cfg.updates_per_chunk * cfg.num_envs * cfg.episode_cap
+    return {"preset": preset, "model": f"{model_name}+savn" + ("-fo" if first_order else ""),
+            "num_envs": num_envs, "env_steps_per_s": round(real / best, 1),
+            "slot_steps_per_s": round(slots / best, 1), "compile_s": round(compile_s, 2),
+            "mean_episode_steps": round(real / (cfg.updates_per_chunk * cfg.num_envs), 2),
+            "_run_s": best}
+
+
 def matmul_peak_gflops(n: int = 2048, repeats: int = 8) -> float:
     """Best-of-`repeats` GFLOP/s of a jitted float32 (n x n) @ (n x n) matmul."""
     ka, kb = jax.random.split(jax.random.PRNGKey(0))
@@ -248,6 +281,10 @@ def main() -> None:
     ap.add_argument("--dtype", nargs="+", default=["float32"],
                     choices=["float32", "bfloat16"], help="compute dtypes (rows for each)")
     ap.add_argument("--matmul-repeats", type=int, default=8)
+    ap.add_argument("--savn", choices=("none", "also", "first-order"), default="none",
+                    help="also time SAVN training of each model (training/savn.py; "
+                         "first-order: both MAML orders); env-steps/s counts the steps the "
+                         "episodes really took (docs/savn.md)")
     args = ap.parse_args()
     bad = sorted(set(args.models) - set(ENCODERS))
     if bad:
@@ -296,6 +333,18 @@ def main() -> None:
                       f"{r['env_steps_per_s']:11.1f} {r['flops_per_env_step'] / 1e6:10.2f} "
                       f"{r['_raw_flops_per_env_step'] / 1e6:8.2f} {r['gflops_per_s']:8.2f} "
                       f"{100 * r['gflops_per_s'] / peak:6.1f}", flush=True)
+                if args.savn != "none" and d == 1 and seeds == 1 and dtype == "float32":
+                    for fo in (False, True)[:1 + (args.savn == "first-order")]:
+                        sv = time_savn_row(preset, model_name, n, scenes,
+                                           args.updates_per_chunk, args.repeats, fo)
+                        rows.append(sv)
+                        print(f"{preset:6} {sv['model']:15} N={n:<4d} compile "
+                              f"{sv['compile_s']:.1f} s, run {sv['_run_s']:.3f} s: "
+                              f"{sv['env_steps_per_s']:.0f} env-steps/s "
+                              f"({sv['env_steps_per_s'] / r['env_steps_per_s']:.2f} of "
+                              f"{model_name}; {sv['slot_steps_per_s']:.0f} episode-slot "
+                              f"steps/s, {sv['mean_episode_steps']} steps per episode)",
+                              flush=True)
     print("D: devices (env axis sharded); S: seeds in one program; steps: env-steps per "
           "chunk (all seeds); MFLOP/step: scan-aware count; xla raw: "
           "compiled.cost_analysis() / env-steps (scan bodies counted once; per device when "

@@ -15,10 +15,10 @@ import numbers
 from pathlib import Path
 from typing import Literal, get_args
 
-CONFIG_VERSION = 5   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step;
+CONFIG_VERSION = 6   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step;
                      # 4: devices, dtype (scale-out; same parameters and checkpoints);
-                     # 5: max_steps renamed episode_cap (both stages)
-READABLE_VERSIONS = (2, 3, 4, 5)   # configs and checkpoints this version reads
+                     # 5: max_steps renamed episode_cap (both stages); 6: the savn fields
+READABLE_VERSIONS = (2, 3, 4, 5, 6)   # configs and checkpoints this version reads
 # Fields renamed since, old name -> new, for the configs of versions before 5 (both stages)
 RENAMED = {"max_steps": "episode_cap"}
 OLD_RENAMES = {v: RENAMED for v in (2, 3, 4)}
@@ -29,6 +29,9 @@ V2_DEFAULTS = {"il_norm": "masked_mean", "il_step": "state"}
 # Fields a version-3 (or 2) config lacks, with the values those runs were trained with
 # (one device, float32): equal to the dataclass defaults, kept here as the record.
 V3_DEFAULTS = {"devices": 0, "dtype": "float32"}
+# Fields a version-5 (or older) config lacks: those runs are not SAVN runs (issue 25).
+V5_DEFAULTS = {"savn": False, "savn_steps": 6, "savn_inner_lr": 1e-4,
+               "savn_inner_steps": 4, "savn_first_order": False}
 
 # String modes are Literal types; their values (typing.get_args) are what validate
 # accepts, and every dispatch on them is a dict that raises on other values
@@ -191,9 +194,23 @@ class TrainConfig:
     devices: int = 0                  # devices per process the env axis is sharded over
                                       # (0: all local devices); a resume may change it
     dtype: DType = "float32"          # bfloat16: bf16 matmuls, float32 parameters
+    # SAVN (training/savn.py, docs/savn.md): whole episodes cut into segments of
+    # savn_steps steps; after each of the first savn_inner_steps segments that did not end
+    # the episode, one SGD step (savn_inner_lr) on the learned loss; MAML meta-gradient
+    # (first order: the inner gradient is a constant)
+    savn: bool = False
+    savn_steps: int = 6               # k, the release's num_steps
+    savn_inner_lr: float = 1e-4       # the release's inner_lr
+    savn_inner_steps: int = 4         # inner steps per episode (the release's gradient_limit)
+    savn_first_order: bool = False
 
     @property
     def steps_per_update(self) -> int:
+        """Env steps an update counts for the budget. SAVN: num_envs whole episodes,
+        counted at their cap (episode_cap steps each; the real steps are fewer, logged as
+        env_steps_real)."""
+        if self.savn:
+            return self.num_envs * self.episode_cap
         return self.num_envs * self.rollout_len
 
     @property
@@ -222,6 +239,13 @@ class TrainConfig:
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"config field 'dropout' must lie in [0, 1), got {self.dropout}")
         check_ranges(self, FIELD_RANGES, "config field")
+        if self.savn:
+            for name, ok, want in (("il", self.il == "none", "'none' with savn"),
+                                   ("dropout", self.dropout == 0.0, "0 with savn"),
+                                   ("dtype", self.dtype == "float32", "'float32' with savn")):
+                if not ok:
+                    raise ValueError(f"config field {name!r}: {getattr(self, name)!r}, "
+                                     f"expected {want} (docs/savn.md)")
         return self
 
     def to_json(self) -> str:
@@ -236,7 +260,7 @@ FIELD_RANGES: dict[str, Range] = {
                           "lstm_layers", "num_envs", "rollout_len", "total_env_steps",
                           "updates_per_chunk", "eval_every_chunks",
                           "eval_episodes_per_room_type", "checkpoint_every_chunks",
-                          "keep_checkpoints")},
+                          "keep_checkpoints", "savn_steps", "savn_inner_steps")},
     # the env counts steps in int32 and keeps a trail of episode_cap + 1 states per env
     # (the memory check, training/memory.py, bounds it far lower)
     "episode_cap": Range(lo=1, hi=INT32_MAX - 1),
@@ -245,6 +269,7 @@ FIELD_RANGES: dict[str, Range] = {
     "gae_lambda": Range(lo=0, hi=1),
     "entropy_coef": NON_NEGATIVE, "value_coef": NON_NEGATIVE, "il_weight": NON_NEGATIVE,
     "success_reward": FINITE, "step_penalty": FINITE,
+    "savn_inner_lr": Range(lo=0, note="0: no inner update"),
 }
 
 TRAIN_PRESETS: dict[str, dict] = {
@@ -268,6 +293,8 @@ TABLE_ROWS: dict[str, dict] = {
     "org_il": dict(model="org", il="deadlock"),           # ORG + IL
     "org_released": dict(model="org_released", il="none"),
     "dsp": dict(model="dsp", il="none"),                  # D-SP (prior knowledge graph)
+    "savn": dict(model="we", il="none", savn=True),       # SAVN (word-embedding target)
+    "dsavn": dict(model="baseline", il="none", savn=True),   # D-SAVN (detections)
 }
 # The rows' dropout: val chose 0 over the release's 0.25 (Baseline, seed 100, 2 M env
 # steps: 69.0 vs 65.5 val success; experiments/results/val_choices, docs/results.md).
@@ -326,7 +353,9 @@ def load_config(run_dir: str | Path) -> TrainConfig:
     """The TrainConfig saved in a training run directory (run_dir.read_config)."""
     from orgnav_jax.training.run_dir import read_config
     return read_config(run_dir, TrainConfig, "nav", READABLE_VERSIONS,
-                       {2: {**V2_DEFAULTS, **V3_DEFAULTS}, 3: V3_DEFAULTS}, OLD_RENAMES)
+                       {2: {**V2_DEFAULTS, **V3_DEFAULTS, **V5_DEFAULTS},
+                        3: {**V3_DEFAULTS, **V5_DEFAULTS}, 4: V5_DEFAULTS, 5: V5_DEFAULTS},
+                       OLD_RENAMES)
 
 
 def _parse_bool(text: str) -> bool:

@@ -29,7 +29,7 @@ from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import build_model
 from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.errors import UserError
-from orgnav_jax.training import scale
+from orgnav_jax.training import savn, scale
 from orgnav_jax.training.driver import (
     Stage, run_population, run_stage)
 from orgnav_jax.training.runs import model_policy, preflight, split_on_device
@@ -77,6 +77,37 @@ def evaluate_on_val(model, params, val_scenes, val_episodes) -> dict:
     """Greedy evaluation on the val episodes -> overall metrics."""
     return evaluation.evaluate(model_policy(model), params, val_scenes, val_episodes,
                                env.EnvParams.evaluation())["overall"]
+
+
+@compiled_once
+def cached_savn_chunk(cfg: TrainConfig, model):
+    """(optimizer, learned loss module, jitted SAVN chunk): shared as cached_train_chunk."""
+    optimizer = make_optimizer(cfg)
+    learned = savn.build_learned_loss()
+    return optimizer, learned, savn.make_savn_chunk(cfg, model, learned, optimizer)
+
+
+def savn_runner(cfg: TrainConfig, model, train_scenes):
+    optimizer, learned, _ = cached_savn_chunk(compute_config(cfg), model)
+    return savn.init_savn_runner(cfg, model, learned, optimizer, train_scenes,
+                                 jax.random.PRNGKey(cfg.seed))
+
+
+def savn_stage(cfg: TrainConfig, model, train_scenes, val_scenes, val_episodes) -> Stage:
+    """Stage 1 in SAVN mode (training/savn.py): updates of num_envs whole episodes with
+    inner steps; val with the test-time inner steps (savn_policy)."""
+    _, learned, chunk = cached_savn_chunk(compute_config(cfg), model)
+    policy = savn.run_policy(cfg, model, val_scenes)
+    return Stage(
+        name=f"train {cfg.model}+savn", unit="step", step_name="env_steps",
+        rate_key="steps_per_s", per_chunk=cfg.updates_per_chunk * cfg.steps_per_update,
+        total=cfg.num_updates * cfg.steps_per_update,
+        chunk=lambda runner: chunk(runner, train_scenes), summarize=chunk_summary,
+        validate=lambda runner: evaluation.evaluate(
+            policy, runner.params, val_scenes, val_episodes,
+            env.EnvParams.evaluation())["overall"],
+        score_keys=("success", "spl"), best_keys=("spl", "success"),
+        progress_keys=("success",))
 
 
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
@@ -129,6 +160,13 @@ def _train(cfgs: list[TrainConfig], scenes, run_dirs: list[Path], mesh, resume: 
     val_episodes = sample_episodes(val_scenes, cfg.eval_episodes_per_room_type, seed=0,
                                    split="val")
     model = build_model(cfg, train_scenes)
+    if cfg.savn:
+        if population or mesh is not None:
+            raise UserError("savn: one seed on one device per run (no --seeds population, "
+                            "no --devices mesh yet; docs/savn.md)")
+        return [run_stage(savn_stage(cfg, model, train_scenes, val_scenes, val_episodes),
+                          savn_runner(cfg, model, train_scenes), cfg, run_dirs[0], resume,
+                          progress, stop_after_chunks)]
     optimizer, train_chunk = cached_train_chunk(compute_config(cfg), model, mesh,
                                                 population)
     runners = [init_runner(c, model, optimizer, train_scenes, jax.random.PRNGKey(c.seed))

@@ -102,6 +102,19 @@ def load_run_model(run_dir: str | Path, best: bool = True):
     ckpt.check_scenes(scenes, scenes_name(cfg), best)      # before the model is built
     train = scenes.split_view("train")
     model = build_model(cfg, train)
+    if cfg.savn:       # {"nav", "ll"}: the navigation model and SAVN's learned loss
+        from orgnav_jax.training import savn
+        like = jax.eval_shape(lambda s: savn.init_meta(
+            model, savn.build_learned_loss(), cfg, s, jax.random.PRNGKey(0)), train)
+        if best:
+            params, _ = ckpt.restore(like, best=True)
+        else:
+            from orgnav_jax.training.update import make_optimizer
+            runner_like = jax.eval_shape(lambda s: savn.init_savn_runner(
+                cfg, model, savn.build_learned_loss(), make_optimizer(cfg), s,
+                jax.random.PRNGKey(0)), train)
+            params = ckpt.restore(runner_like)[0].params
+        return model, params, cfg
     like = init_params(model, jax.random.PRNGKey(0), train)
     if best:
         params, _ = ckpt.restore(like, best=True)
@@ -118,4 +131,7 @@ def load_run_model(run_dir: str | Path, best: bool = True):
 def load_run_policy(run_dir: str | Path, best: bool = True):
     """-> (Policy, params, config) of a training run (see load_run_model)."""
     model, params, cfg = load_run_model(run_dir, best)
+    if cfg.savn:       # with SAVN's test-time inner steps (training/savn.py)
+        from orgnav_jax.training import savn
+        return savn.run_policy(cfg, model, scenes_for(cfg)), params, cfg
     return model_policy(model, cfg.model), params, cfg

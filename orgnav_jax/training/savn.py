@@ -1,0 +1,421 @@
+"""SAVN (Wortsman et al., CVPR 2019): self-adaptive navigation by a learned loss, MAML.
+
+Training (a stage-1 mode, `TrainConfig.savn`; presets `savn` (WE target) and `dsavn`
+(detections); docs/savn.md): every update runs `num_envs` whole training episodes (no
+auto-reset, one batch row per episode) cut into segments of k = `savn_steps` steps. After
+each of the first `savn_inner_steps` segments that did not end its episode, the episode's
+fast weights take one SGD step (`savn_inner_lr`) on the learned interaction loss of that
+segment (`LearnedLoss`: a temporal convolution over the segment's LSTM outputs and action
+distributions, its output's L2 norm), and act with them for the rest of the episode. The
+A2C loss of the episode is taken with the weights in force at each step, and its gradient
+(`jax.grad` through the inner steps, second order unless `savn_first_order`) trains the
+initial parameters and the learned loss. At test time (`savn_policy`) the same inner
+steps run with the learned loss only.
+
+Fast weights (`Fast`, per batch row): every parameter of the navigation network. The
+first LSTM layer's input and recurrent kernels (most of the parameters) stay shared and
+each row keeps its updates as low-rank factors: one segment's SGD step on them is
+-lr sum_t x_t^T d_t (x_t the layer's input, d_t the gate gradient at step t), so a slot
+holds (x_t, h_{t-1}, -lr d_t) and the forward pass adds sum_j (x . ux_j + h . uh_j) v_j
+(the idea of tpn/lowrank.py, written plainly here so that jax differentiates through it a
+second time). All other parameters are dense per-row copies (small). Slots not yet
+written are zero and add nothing, so shapes are fixed: savn_inner_steps x k slots.
+
+    meta = init_meta(model, learned, cfg, scenes, key)       # {"nav": ..., "ll": ...}
+    loss, aux = savn_loss(meta, model, learned, cfg, scenes, key)
+    chunk = make_savn_chunk(cfg, model, learned, optimizer)  # jitted
+    policy = savn_policy(model, learned, k, inner_steps, inner_lr)
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct, traverse_util
+
+from orgnav_jax import env
+from orgnav_jax.compile_cache import compiled_once
+from orgnav_jax.evaluation import Policy
+from orgnav_jax.models import init_params, model_inputs, reset_carry
+from orgnav_jax.training.losses import gae
+from orgnav_jax.training.rollout import EpisodeStats
+from orgnav_jax.tree import tile, where_rows
+
+LSTM0 = ("trunk", "lstm_0")                      # the first LSTM layer's module path
+LOWRANK = {("params",) + LSTM0 + ("input_kernel",): "ux",
+           ("params",) + LSTM0 + ("recurrent_kernel",): "uh"}
+
+
+class LearnedLoss(nn.Module):
+    """The release's learned loss: H (k, F) (F = LSTM width + 6 action probabilities) is
+    read as k channels over F positions; two causal convolutions of kernel 2 (dilations 1
+    and 2; 10 then 1 channels, leaky ReLU after each), written as Dense over the shifted
+    inputs; the loss is the L2 norm of the output (the release's pow(2).sum().pow(0.5);
+    a 1e-12 inside the root keeps its gradient finite at 0)."""
+    channels: int = 10
+
+    @nn.compact
+    def __call__(self, H):
+        x = H.T                                           # (F, k): positions x channels
+        for i, width in enumerate((self.channels, 1)):
+            d = 2 ** i
+            shifted = jnp.pad(x, ((d, 0), (0, 0)))[:-d]   # x_{p - d}, zero before the start
+            x = nn.leaky_relu(nn.Dense(width, name=f"conv{i}_now")(x)
+                              + nn.Dense(width, use_bias=False, name=f"conv{i}_past")(shifted))
+        return jnp.sqrt(jnp.sum(x ** 2) + 1e-12)
+
+
+@struct.dataclass
+class Fast:
+    """Per-row fast weights (leading axis B): dense copies of every parameter but the
+    first LSTM layer's kernels, and those kernels' low-rank updates (R slots)."""
+    dense: Any            # flat {path: (B, ...)}
+    ux: jax.Array         # (B, R, in)  the layer's input of each slot's step
+    uh: jax.Array         # (B, R, H)   the LSTM state before that step
+    v: jax.Array          # (B, R, 4H)  -lr x the gate gradient of that step (0: unused)
+
+
+@struct.dataclass
+class SavnRunner:
+    params: Any           # {"nav": navigation variables, "ll": learned-loss variables}
+    opt_state: Any
+    key: jax.Array
+    update: jax.Array
+
+
+def split_params(nav):
+    """Navigation variables -> (shared: the first LSTM layer's kernels, dense: the rest),
+    flat dicts {path: array}."""
+    flat = traverse_util.flatten_dict(nav)
+    missing = [p for p in LOWRANK if p not in flat]
+    if missing:
+        raise ValueError(f"SAVN: the model has no {['/'.join(p) for p in missing]}")
+    return ({p: flat[p] for p in LOWRANK}, {p: x for p, x in flat.items() if p not in LOWRANK})
+
+
+def merge_params(shared, dense):
+    return traverse_util.unflatten_dict({**shared, **dense})
+
+
+def init_fast(nav, batch: int, slots: int) -> Fast:
+    """Every row's fast weights = the trained parameters (no slot written)."""
+    shared, dense = split_params(nav)
+    w_in = shared[("params",) + LSTM0 + ("input_kernel",)]
+    w_h = shared[("params",) + LSTM0 + ("recurrent_kernel",)]
+    z = lambda n: jnp.zeros((batch, slots, n), w_in.dtype)
+    return Fast(tile(dense, batch), z(w_in.shape[0]), z(w_h.shape[0]), z(w_in.shape[1]))
+
+
+def reset_fast(nav, fast: Fast, mask) -> Fast:
+    """Rows where mask (B,) go back to the trained parameters."""
+    return where_rows(mask, init_fast(nav, mask.shape[0], fast.v.shape[1]), fast)
+
+
+def materialize(nav, fast: Fast):
+    """-> per-row navigation variables (B, ...) with the low-rank updates added (tests)."""
+    shared, _ = split_params(nav)
+    full = dict(fast.dense)
+    for path, u in LOWRANK.items():
+        full[path] = shared[path][None] + jnp.einsum("bri,bro->bio", getattr(fast, u), fast.v)
+    return traverse_util.unflatten_dict(full)
+
+
+def _one(tree):
+    return jax.tree_util.tree_map(lambda x: x[None], tree)
+
+
+def _unbatch(tree):
+    return jax.tree_util.tree_map(lambda x: x[0], tree)
+
+
+def segment_row(model, shared, dense, ux, uh, v, carry, inputs, pert):
+    """One row (episode) for L steps with its fast weights: carry (per layer (c, h), each
+    (H,)), inputs: ModelInputs with leading L, pert (L, 4H) added to the first layer's
+    gates (its gradient is the gate gradient) -> (logits (L, 6), values (L,), h (L, H),
+    carry, x (L, in) the first layer's inputs, h_prev (L, H) its state before each step).
+    The non-recurrent part runs once over the L steps."""
+    variables = merge_params(shared, dense)
+    seen = {}
+
+    def intercept(next_fun, args, kwargs, context):
+        if context.method_name == "project" and tuple(context.module.path) == LSTM0:
+            x = args[0]
+            seen["x"] = x
+            return next_fun(*args, **kwargs) + (x @ ux.T) @ v
+        return next_fun(*args, **kwargs)
+
+    with nn.intercept_methods(intercept):
+        gates = model.apply(variables, inputs, method=model.embed)
+
+    def body(c, xs):
+        g, p = xs
+        h_prev = c[0][1]
+        g = g + (h_prev @ uh.T) @ v + p
+        logits, value, c, h = model.apply(variables, g[None], _one(c), method=model.recur)
+        return _unbatch(c), (logits[0], value[0], h[0], h_prev)
+
+    carry, (logits, values, h, h_prev) = jax.lax.scan(body, carry, (gates, pert))
+    return logits, values, h, carry, seen["x"], h_prev
+
+
+def learned_input(logits, h):
+    """The learned loss's input: [LSTM output, action distribution] per step (L, H + 6)."""
+    return jnp.concatenate([h, jax.nn.softmax(logits)], axis=-1)
+
+
+def inner_row(model, learned, shared, dense, ux, uh, v, carry, inputs, ll_params, lr,
+              slot: int | jax.Array, on, first_order: bool = False):
+    """One row: the segment's forward pass and one SGD step (lr; only where `on`) of the
+    learned loss on its fast weights, whose updates of the first LSTM layer's kernels go
+    into slots slot .. slot + L - 1 -> (logits, values, carry, learned loss, new dense,
+    ux, uh, v). first_order: the step's gradient is a constant for outer gradients."""
+    L = jax.tree_util.tree_leaves(inputs)[0].shape[0]
+
+    def loss_of(dense, pert):
+        logits, values, h, carry_out, x, h_prev = segment_row(model, shared, dense, ux, uh, v,
+                                                              carry, inputs, pert)
+        return learned.apply(ll_params, learned_input(logits, h)), (logits, values, carry_out,
+                                                                    x, h_prev)
+
+    (ll, (logits, values, carry_out, x, h_prev)), (g_dense, delta) = jax.value_and_grad(
+        loss_of, argnums=(0, 1), has_aux=True)(dense, jnp.zeros((L, v.shape[-1]), v.dtype))
+    sg = jax.lax.stop_gradient if first_order else (lambda t: t)
+    step = lr * on.astype(v.dtype)
+    dense = jax.tree_util.tree_map(lambda p, g: p - step * sg(g), dense, g_dense)
+    put = lambda buf, new: jax.lax.dynamic_update_slice_in_dim(buf, new, slot, 0)
+    ux, uh, v = put(ux, sg(x)), put(uh, sg(h_prev)), put(v, -step * sg(delta))
+    return logits, values, carry_out, ll, dense, ux, uh, v
+
+
+def _v_segment(model):
+    return jax.vmap(lambda shared, dense, ux, uh, v, carry, inputs, pert: segment_row(
+        model, shared, dense, ux, uh, v, carry, inputs, pert),
+        in_axes=(None, 0, 0, 0, 0, 0, 0, 0))
+
+
+def _v_inner(model, learned, first_order):
+    return jax.vmap(lambda shared, dense, ux, uh, v, carry, inputs, ll, lr, slot, on:
+                    inner_row(model, learned, shared, dense, ux, uh, v, carry, inputs, ll,
+                              lr, slot, on, first_order),
+                    in_axes=(None, 0, 0, 0, 0, 0, 0, None, None, 0, 0))
+
+
+def segments(cap: int, k: int) -> list[tuple[int, int]]:
+    """[lo, hi) step ranges of the segments of an episode of `cap` steps."""
+    return [(lo, min(lo + k, cap)) for lo in range(0, cap, k)]
+
+
+def build_learned_loss() -> LearnedLoss:
+    return LearnedLoss()
+
+
+def init_meta(model, learned: LearnedLoss, cfg, scenes, key):
+    """{"nav": navigation variables, "ll": learned-loss variables}."""
+    k_nav, k_ll = jax.random.split(key)
+    nav = init_params(model, k_nav, scenes)
+    return {"nav": nav, "ll": learned.init(k_ll, jnp.zeros((cfg.savn_steps,
+                                                             cfg.hidden + 6)))}
+
+
+def savn_loss(meta, model, learned, cfg, scenes, key):
+    """The meta-objective of one update: num_envs whole training episodes with inner steps
+    -> (A2C loss over their valid steps, aux with the episode sums of EpisodeStats)."""
+    N, cap, k = cfg.num_envs, cfg.episode_cap, cfg.savn_steps
+    params_env = env.EnvParams(success_reward=cfg.success_reward,
+                               step_penalty=cfg.step_penalty, step_caps=(cap,) * 4)
+    shared, _ = split_params(meta["nav"])
+    fast = init_fast(meta["nav"], N, cfg.savn_inner_steps * k)
+    k_reset, k_act = jax.random.split(key)
+    _, state = jax.vmap(env.reset, in_axes=(0, None, None))(
+        jax.random.split(k_reset, N), scenes, params_env)
+    v_step = jax.vmap(env.step_env, in_axes=(0, 0, None, None))
+    v_observe = jax.vmap(env.observe, in_axes=(0, None))
+    v_segment, v_inner = _v_segment(model), _v_inner(model, learned, cfg.savn_first_order)
+    carry = model.initial_carry(N)
+    running = jnp.ones(N, bool)
+    ep_return = jnp.zeros(N)
+    stats = EpisodeStats.zeros()
+    sg = jax.lax.stop_gradient
+    outs, learned_losses = [], []
+    for s, (lo, hi) in enumerate(segments(cap, k)):
+        L = hi - lo
+        f_sg, sh_sg = sg(fast), sg(shared)
+
+        def act(c, key):        # the agent acts with this segment's weights (no gradient)
+            state, lstm, running, ep_return, stats = c
+            obs = v_observe(state, scenes)
+            inputs = model_inputs(scenes, obs)
+            logits, _, _, lstm, _, _ = v_segment(
+                sh_sg, f_sg.dense, f_sg.ux, f_sg.uh, f_sg.v, lstm,
+                jax.tree_util.tree_map(lambda x: x[:, None], inputs),
+                jnp.zeros((N, 1, f_sg.v.shape[-1])))
+            action = jax.random.categorical(key, logits[:, 0]).astype(jnp.int32)
+            _, state2, reward, done, info = v_step(state, action, scenes, params_env)
+            state = where_rows(running, state2, state)
+            reward = jnp.where(running, reward, 0.0)
+            ended = running & done
+            ep_return = ep_return + reward
+            spl = info["success"] * info["optimal_len"] / jnp.maximum(
+                jnp.maximum(info["path_len"], info["optimal_len"]), 1)
+            d = ended.astype(jnp.float32)
+            stats = EpisodeStats(stats.count + d.sum(),
+                                 stats.success + (d * info["success"]).sum(),
+                                 stats.spl + (d * spl).sum(), stats.ret + (d * ep_return).sum(),
+                                 stats.length + (d * info["steps"]).sum())
+            out = (inputs, action, reward, ended | ~running, running)
+            return (state, lstm, running & ~done, ep_return, stats), out
+
+        (state, _, running_after, ep_return, stats), (inputs, action, reward, done, valid) = \
+            jax.lax.scan(act, (state, sg(carry), running, ep_return, stats),
+                         jax.random.split(jax.random.fold_in(k_act, s), L))
+        rows = jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), inputs)   # (N, L, ..)
+        if s < cfg.savn_inner_steps and hi < cap and L == k:
+            logits, values, carry, ll, dense, ux, uh, v = v_inner(
+                shared, fast.dense, fast.ux, fast.uh, fast.v, carry, rows, meta["ll"],
+                cfg.savn_inner_lr, jnp.full(N, s * k, jnp.int32), running_after)
+            fast = Fast(dense, ux, uh, v)
+            n = jnp.maximum(running_after.sum(), 1)
+            learned_losses.append((ll * running_after).sum() / n)
+        else:
+            logits, values, _, carry, _, _ = v_segment(
+                shared, fast.dense, fast.ux, fast.uh, fast.v, carry, rows,
+                jnp.zeros((N, L, fast.v.shape[-1])))
+        outs.append((jnp.swapaxes(logits, 0, 1), jnp.swapaxes(values, 0, 1), action, reward,
+                     done, valid))
+        running = running_after
+    logits, values, action, reward, done, valid = (jnp.concatenate(x, 0) for x in zip(*outs))
+    mask = valid.astype(jnp.float32)                 # (T, N)
+    adv, ret = gae(reward, sg(values), done, jnp.zeros(N), cfg.gamma, cfg.gae_lambda)
+    steps = jnp.maximum(mask.sum(), 1.0)
+    logp_all = jax.nn.log_softmax(logits)
+    logp = jnp.take_along_axis(logp_all, action[..., None], -1)[..., 0]
+    policy_loss = -(sg(adv) * logp * mask).sum() / steps
+    value_loss = 0.5 * (((ret - values) ** 2) * mask).sum() / steps
+    entropy = (-(jnp.exp(logp_all) * logp_all).sum(-1) * mask).sum() / steps
+    loss = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
+    aux = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
+           "learned_loss": (jnp.mean(jnp.stack(learned_losses)) if learned_losses
+                            else jnp.float32(0)),
+           "env_steps_real": mask.sum()}
+    return loss, (aux, stats)
+
+
+def init_savn_runner(cfg, model, learned, optimizer, scenes, key) -> SavnRunner:
+    k_params, k_run = jax.random.split(key)
+    params = init_meta(model, learned, cfg, scenes, k_params)
+    return SavnRunner(params, optimizer.init(params), k_run, jnp.int32(0))
+
+
+def make_savn_chunk(cfg, model, learned, optimizer):
+    """A jitted (runner, scenes) -> (runner, metrics) of cfg.updates_per_chunk SAVN
+    updates; metrics as training.update's chunk (EpisodeStats sums, loss terms)."""
+    grad_fn = jax.value_and_grad(savn_loss, has_aux=True)
+
+    @jax.jit
+    def chunk(runner: SavnRunner, scenes):
+        def one(carry, _):
+            runner, stats = carry
+            key, k = jax.random.split(runner.key)
+            (loss, (aux, ep)), grads = grad_fn(runner.params, model, learned, cfg, scenes, k)
+            updates, opt_state = optimizer.update(grads, runner.opt_state, runner.params)
+            runner = SavnRunner(optax.apply_updates(runner.params, updates), opt_state, key,
+                                runner.update + 1)
+            stats = jax.tree_util.tree_map(jnp.add, stats, ep)
+            return (runner, stats), dict(aux, loss=loss, grad_norm=optax.tree.norm(grads))
+
+        (runner, stats), aux = jax.lax.scan(one, (runner, EpisodeStats.zeros()), None,
+                                            length=cfg.updates_per_chunk)
+        real = aux.pop("env_steps_real").sum()
+        metrics = {k: v.mean() for k, v in aux.items()}
+        metrics["loss_finite"] = jnp.isfinite(aux["loss"]).all()
+        metrics.update(episodes=stats.count, success=stats.success, spl=stats.spl,
+                       ret=stats.ret, length=stats.length, env_steps_real=real)
+        return runner, metrics
+
+    return chunk
+
+
+@struct.dataclass
+class SavnCarry:
+    """Per-episode state of the test-time policy (leading axis B)."""
+    lstm: Any            # the LSTM carry
+    fast: Fast           # the episode's fast weights
+    seg_lstm: Any        # the LSTM carry at the start of the running segment
+    seg_inputs: Any      # ModelInputs (B, k, ...) of the running segment's steps
+    steps: jax.Array     # (B,) index of the step in the episode
+    updates: jax.Array   # (B,) inner steps taken in the episode
+
+
+@compiled_once
+def savn_policy(model, learned: LearnedLoss, k: int, inner_steps: int, inner_lr: float,
+                widths: tuple[int, int, int], name: str = "SAVN") -> Policy:
+    """Greedy actions with SAVN's test-time inner steps: after each of the first
+    `inner_steps` segments of k steps of an episode, one SGD step (inner_lr) of the
+    learned loss on that episode's fast weights (reset at each episode start).
+    policy_params = {"nav", "ll"}; widths = scene_widths(scenes) (the segment buffer)."""
+    v_segment, v_inner = _v_segment(model), _v_inner(model, learned, True)
+    slots = max(inner_steps * k, 1)
+
+    def init(batch, params):
+        nav = params["nav"]
+        return SavnCarry(model.initial_carry(batch), init_fast(nav, batch, slots),
+                         model.initial_carry(batch), zero_inputs(widths, batch, k),
+                         jnp.zeros(batch, jnp.int32), jnp.zeros(batch, jnp.int32))
+
+    def act(params, carry: SavnCarry, obs, key, scenes, fresh):
+        nav = params["nav"]
+        shared, _ = split_params(nav)
+        steps = jnp.where(fresh, 0, carry.steps + 1)
+        updates = jnp.where(fresh, 0, carry.updates)
+        fast = reset_fast(nav, carry.fast, fresh)
+        lstm = reset_carry(carry.lstm, fresh)
+        pos = steps % k
+        seg_lstm = where_rows(pos == 0, lstm, carry.seg_lstm)
+        inputs = model_inputs(scenes, obs)
+        seg_inputs = jax.vmap(lambda buf, x, i: jax.tree_util.tree_map(
+            lambda b, y: b.at[i].set(y), buf, x))(carry.seg_inputs, inputs, pos)
+        one_step = jax.tree_util.tree_map(lambda x: x[:, None], inputs)
+        logits, _, _, lstm, _, _ = v_segment(shared, fast.dense, fast.ux, fast.uh, fast.v,
+                                             lstm, one_step,
+                                             jnp.zeros((fresh.shape[0], 1, fast.v.shape[-1])))
+        action = jnp.argmax(logits[:, 0], -1).astype(jnp.int32)
+        on = (pos == k - 1) & (updates < inner_steps)
+
+        def inner(fast):
+            *_, dense, ux, uh, v = v_inner(shared, fast.dense, fast.ux, fast.uh, fast.v,
+                                           seg_lstm, seg_inputs, params["ll"], inner_lr,
+                                           jnp.minimum(updates, inner_steps - 1) * k, on)
+            return where_rows(on, Fast(dense, ux, uh, v), fast)
+
+        if inner_steps > 0:
+            fast = jax.lax.cond(on.any(), inner, lambda f: f, fast)
+        return action, SavnCarry(lstm, fast, seg_lstm, seg_inputs, steps,
+                                 updates + on.astype(jnp.int32))
+
+    return Policy(name, init, act)
+
+
+def run_policy(cfg, model, scenes) -> Policy:
+    """The test-time SAVN policy of a SAVN run's config (the learned loss only, no
+    reward); `scenes`: any split of the run's scene set (for its feature widths)."""
+    return savn_policy(model, build_learned_loss(), cfg.savn_steps, cfg.savn_inner_steps,
+                       cfg.savn_inner_lr, scene_widths(scenes), f"{cfg.model}+SAVN")
+
+
+def scene_widths(scenes) -> tuple[int, int, int]:
+    """(global_dim, categories, appearance_dim) of a SceneSet: savn_policy's `widths`."""
+    return (int(scenes.global_dim), int(scenes.present.shape[-1]), int(scenes.appearance_dim))
+
+
+def zero_inputs(widths: tuple[int, int, int], batch: int, k: int):
+    """Zero ModelInputs (batch, k, ...) for scenes of these widths."""
+    from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS
+    from orgnav_jax.models.navmodel import ModelInputs
+    G, C, d = widths
+    z = lambda *s: jnp.zeros((batch, k) + s)
+    return ModelInputs(z(FEATURE_GRID, FEATURE_GRID, G), z(C, d), z(C, 4), z(C), z(C),
+                       z(NUM_ACTIONS))

@@ -1,0 +1,227 @@
+"""SAVN (training/savn.py): inner steps on the learned loss, the meta-gradient, the fast
+weights per episode, the test-time policy and the dsavn preset on the tiny scenes."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from orgnav_jax import episodes, evaluation
+from orgnav_jax.env import EnvParams
+from orgnav_jax.models import build_model, init_params, model_inputs
+from orgnav_jax.training import savn
+from orgnav_jax.training.config import get_config
+from orgnav_jax.training.runs import model_policy
+
+TINY_WIDTHS = dict(hidden=8, glob_channels=2, fuse_channels=2, action_embed=3)
+
+
+@pytest.fixture(scope="module")
+def rooms(tiny_scenes):
+    return tiny_scenes.split_view("train").to_device()
+
+
+def setup(rooms, **kw):
+    cfg = get_config("dsavn", scene_preset="tiny", num_envs=3, episode_cap=8, savn_steps=3,
+                     savn_inner_steps=2, **{**TINY_WIDTHS, **kw})
+    model = build_model(cfg, rooms)
+    learned = savn.build_learned_loss()
+    meta = savn.init_meta(model, learned, cfg, rooms, jax.random.PRNGKey(0))
+    return cfg, model, learned, meta
+
+
+def segment_inputs(rooms, n: int, L: int, seed: int = 0):
+    """ModelInputs (n, L, ...) of random states and targets of the rooms."""
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(seed), 3)
+    states = jax.random.randint(k1, (n * L,), 0, rooms.num_states)
+    from orgnav_jax.env import Observation
+    C = rooms.present.shape[-1]
+    obs = Observation(scene=jnp.zeros(n * L, jnp.int32), state=states,
+                      det_box=jnp.zeros((n * L, C, 4)), det_conf=jnp.zeros((n * L, C)),
+                      target=jax.nn.one_hot(jax.random.randint(k2, (n * L,), 0, C), C),
+                      prev_action=jax.nn.one_hot(jax.random.randint(k3, (n * L,), 0, 6), 6),
+                      deadlock=jnp.zeros(n * L, bool))
+    inputs = model_inputs(rooms, obs)
+    return jax.tree_util.tree_map(lambda x: x.reshape((n, L) + x.shape[1:]), inputs)
+
+
+def reference_segment(model, variables, carry, inputs):
+    """The plain model over L steps of one row (full parameters, step by step)."""
+    def body(c, x):
+        logits, _, c, h = model.apply(variables, jax.tree_util.tree_map(lambda a: a[None], x),
+                                      c)
+        return c, (logits[0], h[0])
+    return jax.lax.scan(body, carry, inputs)
+
+
+def one_row_carry(model):
+    return jax.tree_util.tree_map(lambda x: x, model.initial_carry(1))
+
+
+def test_one_inner_step_is_an_sgd_step_on_the_learned_loss(rooms):
+    cfg, model, learned, meta = setup(rooms)
+    nav, k, lr = meta["nav"], cfg.savn_steps, 0.3
+    fast = savn.init_fast(nav, 1, 2 * k)
+    shared, _ = savn.split_params(nav)
+    inputs = jax.tree_util.tree_map(lambda x: x[0], segment_inputs(rooms, 1, k))
+    carry = jax.tree_util.tree_map(lambda x: x[0], model.initial_carry(1))
+    row = lambda f: jax.tree_util.tree_map(lambda x: x[0], f)
+    f = row(fast)
+    out = savn.inner_row(model, learned, shared, f.dense, f.ux, f.uh, f.v, carry, inputs,
+                         meta["ll"], lr, 0, jnp.bool_(True))
+    new = savn.Fast(*[jax.tree_util.tree_map(lambda x: x[None], t) for t in out[4:]])
+    got = jax.tree_util.tree_map(lambda x: x[0], savn.materialize(nav, new))
+
+    def ll_of(variables):                    # explicit: the learned loss of full weights
+        _, (logits, h) = reference_segment(model, variables, model.initial_carry(1), inputs)
+        return learned.apply(meta["ll"], savn.learned_input(logits, h))
+    g = jax.grad(ll_of)(nav)
+    want = jax.tree_util.tree_map(lambda p, d: p - lr * d, nav, g)
+    moved = 0
+    for a, b, p in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want),
+                       jax.tree_util.tree_leaves(nav)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+        moved += int(not np.allclose(a, p))
+    assert moved >= 8
+    # the segment's own forward pass is the plain model's
+    _, (logits, _) = reference_segment(model, nav, model.initial_carry(1), inputs)
+    np.testing.assert_allclose(out[0], logits, rtol=1e-5, atol=1e-6)
+
+
+def test_meta_gradient_matches_finite_differences(rooms):
+    """Two segments: an inner step on the first, an outer loss on the second's logits and
+    values; the gradient w.r.t. the initial parameters and the learned loss (second order,
+    float64) against central differences along a random direction."""
+    with jax.enable_x64(True):
+        cfg, model, learned, meta = setup(rooms, hidden=4)
+        meta = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64), meta)
+        k = cfg.savn_steps
+        seg = jax.tree_util.tree_map(lambda x: x[0].astype(jnp.float64),
+                                     segment_inputs(rooms, 1, 2 * k, seed=3))
+        first = jax.tree_util.tree_map(lambda x: x[:k], seg)
+        second = jax.tree_util.tree_map(lambda x: x[k:], seg)
+
+        def objective(m, first_order=False):
+            shared, _ = savn.split_params(m["nav"])
+            f = jax.tree_util.tree_map(lambda x: x[0], savn.init_fast(m["nav"], 1, k))
+            carry = jax.tree_util.tree_map(lambda x: x[0].astype(jnp.float64),
+                                           model.initial_carry(1))
+            _, _, carry, _, dense, ux, uh, v = savn.inner_row(
+                model, learned, shared, f.dense, f.ux, f.uh, f.v, carry, first, m["ll"], 0.5,
+                0, jnp.bool_(True), first_order)
+            logits, values, *_ = savn.segment_row(model, shared, dense, ux, uh, v, carry,
+                                                  second, jnp.zeros((k, v.shape[-1])))
+            return jnp.sum(jnp.sin(jnp.arange(6.0) + 1) * jax.nn.log_softmax(logits)) + \
+                jnp.sum(values ** 2)
+
+        grad = jax.grad(objective)(meta)
+        leaves, tree = jax.tree_util.tree_flatten(meta)
+        keys = jax.random.split(jax.random.PRNGKey(7), len(leaves))
+        direction = tree.unflatten([jax.random.normal(kk, x.shape, jnp.float64)
+                                    for kk, x in zip(keys, leaves)])
+        eps = 1e-5
+        shift = lambda s: jax.tree_util.tree_map(lambda x, d: x + s * d, meta, direction)
+        fd = (objective(shift(eps)) - objective(shift(-eps))) / (2 * eps)
+        analytic = sum(jnp.vdot(g, d) for g, d in zip(jax.tree_util.tree_leaves(grad),
+                                                      jax.tree_util.tree_leaves(direction)))
+        np.testing.assert_allclose(analytic, fd, rtol=1e-6)
+        # the learned loss gets a meta-gradient (second order), none with first order
+        ll_norm = lambda g: sum(float(jnp.abs(x).sum()) for x in jax.tree_util.tree_leaves(
+            g["ll"]))
+        assert ll_norm(grad) > 0
+        assert ll_norm(jax.grad(lambda m: objective(m, True))(meta)) == 0
+
+
+def test_fast_weights_never_leak_across_rows_or_episodes(rooms):
+    cfg, model, learned, meta = setup(rooms)
+    nav, k = meta["nav"], cfg.savn_steps
+    shared, _ = savn.split_params(nav)
+    fast = savn.init_fast(nav, 3, 2 * k)
+    inputs = segment_inputs(rooms, 3, k)
+    carry = model.initial_carry(3)
+    v_inner = jax.vmap(lambda d, ux, uh, v, c, x, on: savn.inner_row(
+        model, learned, shared, d, ux, uh, v, c, x, meta["ll"], 0.5, 0, on),
+        in_axes=(0, 0, 0, 0, 0, 0, 0))
+    on = jnp.array([True, False, True])
+    out = v_inner(fast.dense, fast.ux, fast.uh, fast.v, carry, inputs, on)
+    new = savn.Fast(*out[4:])
+    weights = savn.materialize(nav, new)
+    base = savn.materialize(nav, fast)
+    row = lambda t, i: [np.asarray(x[i]) for x in jax.tree_util.tree_leaves(t)]
+    assert all(np.array_equal(a, b) for a, b in zip(row(weights, 1), row(base, 1)))
+    assert not all(np.allclose(a, b) for a, b in zip(row(weights, 0), row(base, 0)))
+    # another row's inputs do not change row 0's update
+    other = jax.tree_util.tree_map(lambda x: x.at[2].set(x[1]), inputs)
+    out2 = v_inner(fast.dense, fast.ux, fast.uh, fast.v, carry, other, on)
+    w2 = savn.materialize(nav, savn.Fast(*out2[4:]))
+    assert all(np.array_equal(a, b) for a, b in zip(row(w2, 0), row(weights, 0)))
+    # a new episode starts from the trained weights
+    reset = savn.reset_fast(nav, new, jnp.array([True, False, False]))
+    assert all(np.array_equal(a, b) for a, b in zip(row(savn.materialize(nav, reset), 0),
+                                                    row(base, 0)))
+
+
+def _val_episodes(rooms_val):
+    return episodes.sample_episodes(rooms_val, 3, seed=0, split="val")
+
+
+def test_inner_lr_zero_equals_the_base_model_and_evaluation_is_deterministic(tiny_scenes):
+    val = tiny_scenes.split_view("val").to_device()
+    eps = _val_episodes(val)
+    cfg, model, learned, meta = setup(val)
+    params = EnvParams.evaluation()
+    base = evaluation.trace_episodes(model_policy(model), meta["nav"], val, eps, params)
+    zero = savn.savn_policy(model, learned, cfg.savn_steps, 4, 0.0, savn.scene_widths(val))
+    got = evaluation.trace_episodes(zero, meta, val, eps, params)
+    np.testing.assert_array_equal(got["action"], base["action"])
+    np.testing.assert_array_equal(got["success"], base["success"])
+    # with inner steps: different actions somewhere, the same for the same seed
+    meta_big = dict(meta, ll=jax.tree_util.tree_map(lambda x: 30 * x, meta["ll"]))
+    pol = savn.savn_policy(model, learned, cfg.savn_steps, 4, 3.0, savn.scene_widths(val))
+    a = evaluation.trace_episodes(pol, meta_big, val, eps, params)
+    b = evaluation.trace_episodes(pol, meta_big, val, eps, params)
+    np.testing.assert_array_equal(a["action"], b["action"])
+    assert (a["action"] != base["action"]).any()
+
+
+def test_the_chunk_compiles_once(rooms):
+    from orgnav_jax.training.update import make_optimizer
+    cfg, model, learned, _ = setup(rooms, updates_per_chunk=2)
+    optimizer = make_optimizer(cfg)
+    chunk = savn.make_savn_chunk(cfg, model, learned, optimizer)
+    runner = savn.init_savn_runner(cfg, model, learned, optimizer, rooms, jax.random.PRNGKey(1))
+    before = jax.tree_util.tree_leaves(runner.params)
+    for _ in range(3):
+        runner, metrics = chunk(runner, rooms)
+    assert chunk._cache_size() == 1
+    assert bool(metrics["loss_finite"]) and int(runner.update) == 6
+    assert float(metrics["episodes"]) == 2 * cfg.num_envs        # whole episodes
+    assert 0 < float(metrics["env_steps_real"]) <= 2 * cfg.num_envs * cfg.episode_cap
+    assert any(not np.allclose(a, b) for a, b in zip(before,
+                                                     jax.tree_util.tree_leaves(runner.params)))
+
+
+def test_dsavn_preset_trains_and_evaluates_from_the_cli(tiny_dir, tmp_path):
+    from orgnav_jax.errors import run_cli
+    from orgnav_jax.train import main
+    run = tmp_path / "dsavn"
+    argv = ["--preset", "dsavn", "--scenes-dir", tiny_dir, "--run-dir", str(run),
+            "--num-envs", "4", "--updates-per-chunk", "2", "--total-env-steps", "480",
+            "--eval-every-chunks", "2", "--eval-episodes-per-room-type", "2",
+            "--quiet", "--no-test", *sum(([f"--{k.replace('_', '-')}", str(v)]
+                                          for k, v in TINY_WIDTHS.items()), [])]
+    assert run_cli(main, argv) == 0
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["savn"] and cfg["model"] == "baseline" and cfg["version"] == 6
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    train = [r for r in records if r.get("kind", r.get("type")) == "train" or
+             "env_steps_real" in r]
+    assert train and all(r["env_steps_real"] > 0 for r in train if "env_steps_real" in r)
+    assert (run / "best").is_dir()
+    from orgnav_jax.training.runs import load_run_policy
+    policy, params, loaded = load_run_policy(run)
+    assert loaded.savn and set(params) == {"nav", "ll"} and "SAVN" in policy.name
