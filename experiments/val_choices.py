@@ -68,7 +68,7 @@ def choices(root: Path = OUT) -> dict:
                      for m in ("success", "spl")} for lr in lrs}
         pick = best(mean)
         out["tpn_lr"] = {"value": float(pick), "variant": f"lr {pick}",
-                         "val": {b: {lr: {m: r[lr][m] for m in ("success", "spl")}
+                         "val": {b: {lr: {m: r[m] for m in ("success", "spl")}
                                      for lr, r in res.items()}
                                  for b, res in per_base.items()},
                          "from": [f"tpn_lr_{b}.json" for b in per_base]}

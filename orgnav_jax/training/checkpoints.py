@@ -17,6 +17,7 @@ import logging
 import os
 import sys
 import threading
+import traceback
 from pathlib import Path
 
 import jax
@@ -146,8 +147,10 @@ class RunCheckpoints:
 def _quiet_failed_reads():
     """While trying a checkpoint that may be damaged: orbax's reader threads and
     coroutines die with it and Python would print each one's traceback ("Event loop is
-    closed", "Exception ignored in ..."). The error that matters is raised and named by
-    restore; those echoes are dropped (collected here, before the hooks come back)."""
+    closed", "Exception ignored in <coroutine _read_array_index...>"). The error that
+    matters is raised and named by restore; those echoes are dropped: all of them during
+    the attempt, and afterwards (coroutines are collected later) those whose traceback
+    runs through orbax or whose message is the closed event loop (_drop_read_echoes)."""
     hooks = sys.unraisablehook, threading.excepthook
     log = logging.getLogger("asyncio")
     level = log.level
@@ -159,6 +162,32 @@ def _quiet_failed_reads():
         gc.collect()
         sys.unraisablehook, threading.excepthook = hooks
         log.setLevel(level)
+        _drop_read_echoes()
+
+
+def _is_read_echo(exc: BaseException | None, tb, obj=None) -> bool:
+    text = f"{obj!r} {exc!r} " + "".join(traceback.format_tb(tb)) if tb else f"{obj!r} {exc!r}"
+    return "orbax" in text or "_read_array_index" in text or "Event loop is closed" in text
+
+
+def _drop_read_echoes() -> None:
+    """Process-wide, once: unraisable and thread exceptions from orbax's reads (and the
+    closed event loop they report) are dropped; every other one reaches the hooks that
+    were installed before."""
+    if getattr(sys.unraisablehook, "_orgnav_read_echoes", False):
+        return
+    unraisable, thread_hook = sys.unraisablehook, threading.excepthook
+
+    def on_unraisable(u):
+        if not _is_read_echo(u.exc_value, u.exc_traceback, u.object):
+            unraisable(u)
+
+    def on_thread(args):
+        if not _is_read_echo(args.exc_value, args.exc_traceback):
+            thread_hook(args)
+
+    on_unraisable._orgnav_read_echoes = True
+    sys.unraisablehook, threading.excepthook = on_unraisable, on_thread
 
 
 class CheckpointUnreadable(ValueError):
