@@ -242,6 +242,21 @@ def per_category(out: Path, row: str = "org", ref: str = "baseline") -> str:
     return "\n".join(lines) + "\n"
 
 
+def compact(results: dict, episodes: dict, lr: str) -> str:
+    """The README's claims table: seeds, mean success difference with its 95% t
+    interval, and the verdict (measured claims only)."""
+    lines = ["| claim | seeds | success difference, points: mean [95% interval] | verdict |",
+             "|---|---|---|---|"]
+    for c in claim_rows(results, episodes, lr):
+        s = c["success"]
+        if s is None:
+            continue
+        zero = "; interval excludes 0" if s["excludes_0"] else ""
+        lines.append(f"| {c['claim']} | {len(s['seeds'])} | {s['mean']:+.1f} "
+                     f"{interval_text(s['interval'])} | {s['verdict']}{zero} |")
+    return "\n".join(lines) + "\n"
+
+
 def read_table_dir(out: Path) -> tuple[dict, dict, dict]:
     """A table directory's spec and, from its runs' files, results[row][seed] = overall
     summary and episodes[row][seed] = per-episode arrays (success, spl). Every summary is
@@ -319,6 +334,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-category", nargs=2, metavar=("ROW", "REF"), default=None,
                     help="print ROW vs REF success per target category and group "
                          "(anchored small objects, anchors, others), e.g. org baseline")
+    ap.add_argument("--compact", action="store_true",
+                    help="print the README's short claims table (measured claims only)")
     ap.add_argument("--check", action="store_true",
                     help="recompute results.json, table.md and claims.md from the runs' "
                          "files; exit 1 on any difference, write nothing")
@@ -326,6 +343,10 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.table)
     if args.per_category:
         print(per_category(out, *args.per_category))
+        return 0
+    if args.compact:
+        spec, results, episodes = read_table_dir(out)
+        print(compact(results, episodes, lr_tag(spec)))
         return 0
     if args.check:
         bad = check(out)

@@ -83,6 +83,10 @@ def test_claims_table_check_and_tampering(claims, table_dir, capsys):
     assert "holds on average (2 of 3 seeds)" in line
     assert "| Baseline > Random |" in text and "| ORG + IL > ORG | not measured |" in text
     assert "not measured yet" in text                   # no full-model row
+    capsys.readouterr()
+    assert claims.main([str(table_dir), "--compact"]) == 0
+    short = capsys.readouterr().out
+    assert "| IL > Baseline | 3 | +10.0 [" in short and "ORG + IL > ORG" not in short
     # the bootstrap interval: over seeds and episodes, around the mean difference
     _, results, episodes = claims.read_table_dir(table_dir)
     lo, hi = claims.bootstrap_interval(episodes, "il", "baseline", ["0", "1", "2"],
