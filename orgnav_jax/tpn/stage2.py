@@ -143,9 +143,8 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
 
 def _train_tpn(cfg: TPNConfig, run_dir: Path, model, base_params, nav_cfg, scenes,
                resume: bool, progress: bool, stop_after_chunks: int | None) -> dict:
-    from orgnav_jax.training.runs import split_on_device
-    train_scenes = split_on_device(nav_cfg, "train")    # shared device copies, as in
-    val_scenes = split_on_device(nav_cfg, "val")        # training.loop
+    from orgnav_jax.training.runs import device_splits
+    train_scenes, val_scenes = device_splits(scenes, "train", "val")   # preflight's set
     tpn = build_tpn(nav_cfg, cfg.network)
     optimizer = make_optimizer(cfg)
     k_init, k_run = jax.random.split(jax.random.PRNGKey(cfg.seed))

@@ -32,7 +32,7 @@ from orgnav_jax.errors import UserError
 from orgnav_jax.training import savn, scale
 from orgnav_jax.training.driver import (
     Stage, run_population, run_stage)
-from orgnav_jax.training.runs import model_policy, preflight, split_on_device
+from orgnav_jax.training.runs import device_splits, model_policy, preflight
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 
 
@@ -153,10 +153,9 @@ def _train(cfgs: list[TrainConfig], scenes, run_dirs: list[Path], mesh, resume: 
            progress: bool, stop_after_chunks: int | None,
            population: bool = False) -> list[dict]:
     cfg = cfgs[0]
-    # one device copy per split in the process (shared with a later evaluation); the
-    # test rooms of the memory-mapped set are never read
-    train_scenes = split_on_device(cfg, "train")
-    val_scenes = split_on_device(cfg, "val")
+    # the train and val splits of the set preflight loaded, on the device; the test rooms
+    # of the memory-mapped set are never read
+    train_scenes, val_scenes = device_splits(scenes, "train", "val")
     val_episodes = sample_episodes(val_scenes, cfg.eval_episodes_per_room_type, seed=0,
                                    split="val")
     model = build_model(cfg, train_scenes)

@@ -38,12 +38,10 @@ def scenes_for(cfg: TrainConfig):
     return load_scenes(cfg.scene_preset, cfg.scene_seed, cfg.scenes_dir)
 
 
-def split_on_device(cfg: TrainConfig, split: str):
-    """One split of scenes_for(cfg) on the device, shared by everything in the process
-    that uses that split (training, its val evaluation, test evaluation): only that
-    split's rooms are read from disk, once (scenes.cache.device_split)."""
-    from orgnav_jax.scenes.cache import device_split
-    return device_split(cfg.scene_preset, cfg.scene_seed, cfg.scenes_dir, split)
+def device_splits(scenes, *splits: str) -> tuple:
+    """The given splits of a loaded (memory-mapped) SceneSet on the device, in order:
+    what preflight loaded is what trains (only those splits' rooms are read)."""
+    return tuple(scenes.split_view(split).to_device() for split in splits)
 
 
 def scenes_name(cfg: TrainConfig) -> str:
