@@ -98,13 +98,20 @@ def provenance() -> dict:
             "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
 
 
+_STARTED: dict = {}      # provenance() when this process started: the code it runs
+
+
 def record_provenance(run_dir: Path, what: str) -> None:
     """Append this session and what it did to RUN_DIR/provenance.json (after the work: a
-    fresh run directory must be empty when training starts)."""
+    fresh run directory must be empty when training starts): the code version and
+    machine of the process as it started ("code", "uncommitted_changes": what ran),
+    and the time of the record."""
     path = run_dir / "provenance.json"
     sessions = json.loads(path.read_text()) if path.exists() else []
     run_dir.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(sessions + [dict(provenance(), did=what)], indent=1))
+    started = _STARTED or provenance()
+    record = dict(started, started=started["time"], time=provenance()["time"], did=what)
+    path.write_text(json.dumps(sessions + [record], indent=1))
 
 
 def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -> dict:
@@ -318,6 +325,7 @@ def main(argv: list[str] | None = None) -> None:
                          "are still rebuilt from every run of the spec)")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
+    _STARTED.update(provenance())          # at start: the code this process loaded
     overrides = {k: v for k, v in overrides_from_args(args).items()
                  if k not in ("seed", "run_dir")}
     tpn_fields = {} if args.tpn_episodes is None else {"total_episodes": args.tpn_episodes}
