@@ -204,3 +204,16 @@ def test_per_target_success_sums_to_the_overall(tmp_path, tiny_dir, capsys):
     out = capsys.readouterr().out
     assert "per target category (episodes):" in out
     assert all(f"{t} ({m['episodes']})" in out for t, m in per.items())
+
+
+def test_empty_or_negative_values_are_refused_not_dropped(tmp_path, cli_error):
+    from orgnav_jax.scenes.__main__ import main as scenes_main
+    assert "--coordinator is empty" in cli_error(
+        train_cli.main, ["--coordinator", "", "--num-processes", "2", "--process-id", "0"])
+    msg = cli_error(scenes_main, ["import", "--offline-dir", tmp_path, "--out",
+                                  tmp_path / "o", "--detection-rows", ""])
+    assert "--detection-rows '': expected comma-separated class names" in msg
+    msg = cli_error(scenes_main, ["export", "--preset", "tiny", "--out", tmp_path / "e",
+                                  "--episodes-per-type", "-1"])
+    assert "--episodes-per-type -1: expected an integer >= 0" in msg
+    assert not (tmp_path / "o").exists() and not (tmp_path / "e").exists()
