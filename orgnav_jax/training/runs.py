@@ -100,6 +100,7 @@ def load_run_model(run_dir: str | Path, best: bool = True):
     ckpt.check_scenes(scenes, scenes_name(cfg), best)      # before the model is built
     train = scenes.split_view("train")
     model = build_model(cfg, train)
+    from orgnav_jax.training.update import init_runner, make_optimizer
     if cfg.savn:       # {"nav", "ll"}: the navigation model and SAVN's learned loss
         from orgnav_jax.training import savn
         like = jax.eval_shape(lambda s: savn.init_meta(
@@ -107,7 +108,6 @@ def load_run_model(run_dir: str | Path, best: bool = True):
         if best:
             params, _ = ckpt.restore(like, best=True)
         else:
-            from orgnav_jax.training.update import make_optimizer
             runner_like = jax.eval_shape(lambda s: savn.init_savn_runner(
                 cfg, model, savn.build_learned_loss(), make_optimizer(cfg), s,
                 jax.random.PRNGKey(0)), train)
@@ -117,7 +117,6 @@ def load_run_model(run_dir: str | Path, best: bool = True):
     if best:
         params, _ = ckpt.restore(like, best=True)
     else:
-        from orgnav_jax.training.update import init_runner, make_optimizer
         runner_like = jax.eval_shape(lambda scenes: init_runner(   # shapes only: the
             cfg, model, make_optimizer(cfg), scenes, jax.random.PRNGKey(0)), train)  # train
                                                                     # rooms are not read
