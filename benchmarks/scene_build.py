@@ -19,8 +19,8 @@ import jax
 import jax.numpy as jnp
 
 from orgnav_jax import scenes
-from orgnav_jax.scenes.expert import expert_tables
-from orgnav_jax.scenes.flat import padded_valid, to_padded
+from orgnav_jax.scenes.sceneset.expert import expert_tables
+from orgnav_jax.scenes.sceneset.flat import padded_valid, to_padded
 
 
 def time_expert(s: scenes.SceneSet, repeats: int = 3) -> tuple[float, float]:

@@ -26,7 +26,7 @@ and the forced devices share the machine's cores (no faster than one device ther
 
 Scenes. The benchmark does not build the `paper` scene preset (minutes, > 1 GB): it loads
 the `tiny` preset once (cached after the first ~20 s build) and swaps in the feature
-projections of each training preset's scene preset (`scenes.builder.feature_bases`: the
+projections of each training preset's scene preset (`scenes.synthetic.builder.feature_bases`: the
 same arrays a real build of that preset uses), so the decoded widths are the preset's
 (paper: 7x7x512 global map, 22x512 appearance) and every step does the same work as on
 the real set; only the number of rooms differs, and the model only gathers from them.
@@ -97,8 +97,8 @@ from jax.extend.core import jaxpr_as_fun  # noqa: E402
 
 from orgnav_jax.models import ENCODERS, build_model  # noqa: E402
 from orgnav_jax.scenes import load_or_build  # noqa: E402
-from orgnav_jax.scenes.builder import feature_bases  # noqa: E402
-from orgnav_jax.scenes.presets import get_preset  # noqa: E402
+from orgnav_jax.scenes.synthetic.builder import feature_bases  # noqa: E402
+from orgnav_jax.scenes.synthetic.presets import get_preset  # noqa: E402
 from orgnav_jax.training import scale  # noqa: E402
 from orgnav_jax.training.config import get_config  # noqa: E402
 from orgnav_jax.training.update import (  # noqa: E402

@@ -191,7 +191,7 @@ def category_groups() -> dict[str, list[str]]:
     anchored small objects (catalog.ANCHORS keys), anchors (what they are placed by, not
     themselves anchored) and the others."""
     from orgnav_jax.constants import CATEGORIES
-    from orgnav_jax.scenes.catalog import ANCHORS
+    from orgnav_jax.scenes.synthetic.catalog import ANCHORS
     anchored = [c for c in CATEGORIES if c in ANCHORS]
     anchors = [c for c in CATEGORIES if c not in ANCHORS and
                any(c in a for a in ANCHORS.values())]

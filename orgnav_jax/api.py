@@ -108,7 +108,7 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
     from orgnav_jax import env, evaluation
     from orgnav_jax.episodes import is_episode_file, load_episodes, sample_episodes, \
         save_episodes
-    from orgnav_jax.scenes.cache import device_split
+    from orgnav_jax.scenes.synthetic.cache import device_split
     if split not in ("train", "val", "test"):
         raise UserError(f"split {split!r}: expected train, val or test")
     if per_room_type < 1:

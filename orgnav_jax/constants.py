@@ -53,6 +53,11 @@ TARGETS: dict[str, tuple[str, ...]] = {
 GRID_SIZE = 0.25           # metres per grid step
 ROTATION_STEP = 45         # degrees per RotateLeft/RotateRight
 NUM_HEADINGS = 8           # 0, 45, ..., 315
+# (di, dj) grid step of MoveAhead for headings 0, 45, ..., 315 degrees: 0 -> +z (di=+1),
+# 90 -> +x (dj=+1); diagonal headings step on both axes.
+HEADING_STEP: tuple[tuple[int, int], ...] = (
+    (1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1),
+)
 HORIZONS: tuple[int, ...] = (0, 30)  # degrees below the horizontal (30 = looking down)
 VISIBILITY_DISTANCE = 1.5  # metres: a target counts as visible within this distance
 FIELD_OF_VIEW = 90.0       # degrees, horizontal and vertical (square image)

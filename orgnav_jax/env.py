@@ -25,7 +25,7 @@ import numpy as np
 from flax import struct
 
 from orgnav_jax.constants import ACTIONS, CATEGORIES, DONE, NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES
-from orgnav_jax.scenes.sceneset import SceneSet
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
 START_TRIES = 4  # start states drawn per reset; the first with a valid target is kept
 

@@ -27,8 +27,9 @@ from orgnav_jax.constants import (  # noqa: F401  (EPISODES_PER_ROOM_TYPE re-exp
 )
 from orgnav_jax.errors import read_int, read_str
 from orgnav_jax.safe_write import write_text_atomic
-from orgnav_jax.scenes.keys import key_index, state_key
-from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet
+from orgnav_jax.scenes.sceneset.fields import UNREACHABLE
+from orgnav_jax.scenes.sceneset.keys import key_index, state_key
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
 FORMAT = "orgnav_jax.episodes/1"
 
@@ -227,8 +228,8 @@ def load_episodes(path: str | os.PathLike, scenes: SceneSet) -> EpisodeSet:
     except UnicodeDecodeError:
         kind = "a Python pickle" if data[:1] == b"\x80" else "binary data"
         raise ValueError(f"episode file {path} is {kind}, not JSON text; {expected} (the "
-                         "authors' pickles load safely with orgnav_jax.offline_episodes."
-                         "load_offline_episodes)") from None
+                         "authors' pickles load safely with "
+                         "orgnav_jax.scenes.offline.episodes.load_offline_episodes)") from None
     except json.JSONDecodeError as err:
         raise ValueError(f"episode file {path} is not valid JSON: {err}") from None
     except RecursionError:

@@ -40,7 +40,7 @@ from orgnav_jax.compile_cache import compiled_once
 from orgnav_jax.constants import CATEGORIES, NUM_ACTIONS, ROOM_TYPES
 from orgnav_jax.episodes import EpisodeSet
 from orgnav_jax.models.navmodel import check_feature_widths, feature_widths
-from orgnav_jax.scenes.sceneset import SceneSet
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 from orgnav_jax.tree import where_rows
 
 LONG_PATH = 5  # the paper's "L>=5" columns

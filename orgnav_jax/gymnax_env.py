@@ -45,8 +45,8 @@ from gymnax.wrappers.gym import GymnaxToGymWrapper
 from orgnav_jax import env as nav
 from orgnav_jax.constants import DONE, FEATURE_GRID, NUM_ACTIONS, NUM_CATEGORIES
 from orgnav_jax.models.navmodel import model_inputs
-from orgnav_jax.scenes.cache import device_split
-from orgnav_jax.scenes.sceneset import SceneSet
+from orgnav_jax.scenes.synthetic.cache import device_split
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
 OBS_MODES = ("flat", "dict")
 # The observation's parts, in the flat vector's order (ModelInputs' fields but dropout).

@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from orgnav_jax.constants import ACTIONS, CATEGORIES, GRID_SIZE, ROOM_TYPES, ROTATION_STEP
-from orgnav_jax.scenes.keys import parse_state_key, state_key
+from orgnav_jax.scenes.sceneset.keys import parse_state_key, state_key
 
 TRAIN_CAP, EVAL_CAP, EVAL_CAP_LIVING_ROOM = 30, 100, 200
 

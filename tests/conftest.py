@@ -5,12 +5,28 @@ one-line error and exit code 2).
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
+import os
+import shutil
+import tempfile
 
-from orgnav_jax import constants as K
+# One on-disk compile cache for the whole session, set before jax is imported: the same
+# small programs compiled in another test's process (xdist workers, CLI subprocesses,
+# which inherit the environment) are read back instead of compiled again. A cache the
+# caller set is used as is and kept; the session's own is removed at the end.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="orgnav-test-jit-")
+    os.environ["ORGNAV_TEST_OWNS_JIT_CACHE"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")
+# a size bound turns on jax's file lock around cache reads and writes (workers share it)
+os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(8 << 30))
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from orgnav_jax import constants as K  # noqa: E402
 from orgnav_jax import scenes
-from orgnav_jax.scenes import catalog, layout
+from orgnav_jax.scenes.synthetic import catalog, layout
 
 # A few floorplans of every room type (train numbering), for single-room tests.
 SAMPLE_FLOORPLANS: tuple[int, ...] = (1, 2, 3, 201, 202, 203, 301, 302, 303, 401, 402, 403)
@@ -89,3 +105,10 @@ def cli_error(capsys):
         assert lines and lines[-1].startswith("error: "), err[-2000:]
         return lines[-1]
     return call
+
+
+def pytest_unconfigure(config):
+    """The session's own compile cache goes when the main process ends (not a worker's)."""
+    owned = os.environ.get("ORGNAV_TEST_OWNS_JIT_CACHE")
+    if owned and not hasattr(config, "workerinput"):
+        shutil.rmtree(owned, ignore_errors=True)

@@ -26,10 +26,10 @@ from orgnav_jax.constants import CATEGORIES, DONE
 from orgnav_jax.episodes import load_episodes
 from orgnav_jax.scenes import UNREACHABLE
 from orgnav_jax.scenes.__main__ import main
-from orgnav_jax.offline_episodes import read_records
+from orgnav_jax.scenes.offline.episodes import read_records
 from orgnav_jax.scenes.offline import OfflineFormatError, import_offline
 from orgnav_jax.scenes.offline.exporter import MARKER_FILE
-from orgnav_jax.scenes.storage import is_scene_set
+from orgnav_jax.scenes.sceneset.storage import is_scene_set
 
 NESTED = "[" * 100_000
 

@@ -11,7 +11,7 @@ import pytest
 from orgnav_jax import constants as K
 from orgnav_jax import env
 from orgnav_jax.reference_env import ReferenceEnv
-from orgnav_jax.scenes.keys import state_key
+from orgnav_jax.scenes.sceneset.keys import state_key
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import numpy as np
 
 from orgnav_jax import constants as K
 from orgnav_jax import scenes
-from orgnav_jax.scenes import expert
+from orgnav_jax.scenes.sceneset import expert
 
 
 def _reverse_graph(next_state: np.ndarray) -> nx.DiGraph:

@@ -10,7 +10,7 @@ import pytest
 
 from orgnav_jax import constants as K
 from orgnav_jax import scenes
-from orgnav_jax.scenes import detector, geometry, global_view, layout
+from orgnav_jax.scenes.synthetic import detector, geometry, global_view, layout
 
 GLOBAL_CH = {"floor": 0, "wall": 1, "furniture": 2, "object": 3, "ceiling": 4, "depth": 5}
 
@@ -126,14 +126,14 @@ def test_detection_arrays_well_formed(tiny_scenes):
 
 
 def _room_detections(room, seed, fp):
-    from orgnav_jax.scenes import builder
+    from orgnav_jax.scenes.synthetic import builder
     assert room.floorplan == fp
     cells = geometry.reachable_cells(room.reachable)
     return builder.room_detections(room, seed, cells, geometry.state_poses(cells))
 
 
 def test_detection_pipeline_matches_room_arrays():
-    from orgnav_jax.scenes import builder
+    from orgnav_jax.scenes.synthetic import builder
     ra = builder.room_arrays(0, 402, "train")
     _, _, box, conf, code = _room_detections(layout.generate_room(0, 402), 0, 402)
     np.testing.assert_array_equal(ra.det_conf, conf)

@@ -11,8 +11,8 @@ import pytest
 
 from orgnav_jax import constants as K
 from orgnav_jax import scenes
-from orgnav_jax.scenes import builder, catalog, layout
-from orgnav_jax.scenes.presets import get_preset
+from orgnav_jax.scenes.synthetic import builder, catalog, layout
+from orgnav_jax.scenes.synthetic.presets import get_preset
 
 ROOM_ARRAYS = ("wall", "furniture", "block_height", "reachable", "obj_category",
                "obj_center", "obj_size", "obj_height")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from orgnav_jax import constants as K
-from orgnav_jax.scenes import geometry
+from orgnav_jax.scenes.synthetic import geometry
 
 SPC = geometry.STATES_PER_CELL  # 16
 

@@ -14,12 +14,12 @@ import pytest
 
 from orgnav_jax import scenes as S
 from orgnav_jax.constants import ROOM_TYPES, SPLITS
-from orgnav_jax.scenes import layout
+from orgnav_jax.scenes.synthetic import layout
 from orgnav_jax.scenes.__main__ import main
-from orgnav_jax.scenes.builder import feature_bases, room_arrays, stack_rooms
-from orgnav_jax.scenes.features import gather_features
+from orgnav_jax.scenes.synthetic.builder import feature_bases, room_arrays, stack_rooms
+from orgnav_jax.scenes.sceneset.features import gather_features
 from orgnav_jax.scenes.offline import export_offline
-from orgnav_jax.scenes.presets import get_preset
+from orgnav_jax.scenes.synthetic.presets import get_preset
 
 # ---------------------------------------------------------------- existing presets
 # Fingerprints of the generator's output computed with the code before the 'large'

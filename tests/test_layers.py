@@ -1,6 +1,6 @@
 """The packages import only downward, in the data-flow order of the README's layout:
 no module imports a layer above its own (function-level imports included), so there is
-no import cycle between packages."""
+no import cycle between packages. No module is exempt: the command lines sit on top."""
 
 from __future__ import annotations
 
@@ -10,62 +10,83 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "orgnav_jax"
+SPLIT = {"scenes"}   # packages whose sub-packages and modules are parts of their own
 
 # lowest first; a module may import its own layer and those below
 LAYERS = (
     ("constants", "errors", "safe_write", "tree", "compile_cache"),
-    ("scenes",),
-    ("episodes", "offline_episodes", "env", "reference_env"),
+    ("scenes.sceneset",),   # the SceneSet data model: what every source produces
+    ("scenes.synthetic",),  # the procedural generator
+    ("scenes", "scenes.summary"),   # the front door (scenes/__init__.py), a set's summary
+    ("episodes", "env", "reference_env"),
+    ("scenes.offline",),    # the authors' format: their episode files are EpisodeSets
     ("models",),
     ("gymnax_env",),     # env + the models' feature decoding, as a gymnax Environment
     ("evaluation",),
     ("training",),
     ("tpn",),
     ("api", "plots"),
-    ("train", "evaluate"),                   # the command-line entry points
+    ("train", "evaluate", "scenes.cli", "scenes.__main__"),   # the command lines
 )
 LAYER = {name: i for i, names in enumerate(LAYERS) for name in names}
-# command-line entry points inside a package sit on top of everything
-ENTRY_POINTS = {"scenes/__main__.py", "scenes/offline/cli.py"}
 
 
-def top_part(module: str) -> str | None:
-    """'orgnav_jax.scenes.offline.reader' -> 'scenes'; other packages -> None."""
+def is_module(module: str) -> bool:
+    """Whether 'orgnav_jax.a.b' is a module or package of this package."""
+    path = PACKAGE.parent.joinpath(*module.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def part(module: str) -> str | None:
+    """'orgnav_jax.models.encoders' -> 'models'; in a SPLIT package its children are
+    parts: 'orgnav_jax.scenes.offline.reader' -> 'scenes.offline', 'orgnav_jax.scenes'
+    (the package itself) -> 'scenes'; other packages -> None."""
     parts = module.split(".")
-    return parts[1] if parts[0] == "orgnav_jax" and len(parts) > 1 else None
+    if parts[0] != "orgnav_jax" or len(parts) < 2:
+        return None
+    if parts[1] in SPLIT and len(parts) > 2:
+        return f"{parts[1]}.{parts[2]}"
+    return parts[1]
 
 
 def imported_parts(path: Path) -> set[str]:
-    """The orgnav_jax top-level parts a file imports, anywhere in it."""
+    """The orgnav_jax parts a file imports, anywhere in it."""
     parts = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
             names = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names = ([f"orgnav_jax.{a.name}" for a in node.names]
-                     if node.module == "orgnav_jax" else [node.module])
+            # `from P import m` imports module P.m when there is one, else names of P
+            names = [f"{node.module}.{a.name}" if is_module(f"{node.module}.{a.name}")
+                     else node.module for a in node.names]
         else:
             continue
-        parts |= {p for p in map(top_part, names) if p}
+        parts |= {p for p in map(part, names) if p}
     return parts
+
+
+def module_name(rel: str) -> str:
+    """'scenes/offline/reader.py' -> 'orgnav_jax.scenes.offline.reader';
+    'scenes/__init__.py' -> 'orgnav_jax.scenes'."""
+    return ".".join(["orgnav_jax", *rel.removesuffix(".py").split("/")]).removesuffix(
+        ".__init__")
 
 
 def modules():
     for path in sorted(PACKAGE.rglob("*.py")):
         rel = path.relative_to(PACKAGE).as_posix()
-        if rel != "__init__.py" and rel not in ENTRY_POINTS:
+        if rel != "__init__.py":
             yield rel
 
 
-def test_every_top_level_part_has_a_layer():
-    parts = {p.stem for p in PACKAGE.glob("*.py") if p.name != "__init__.py"}
-    parts |= {p.parent.name for p in PACKAGE.glob("*/__init__.py")}
+def test_every_module_has_a_layer():
+    parts = {part(module_name(rel)) for rel in modules()}
     assert parts == set(LAYER)
 
 
 @pytest.mark.parametrize("rel", list(modules()))
 def test_imports_go_only_downward(rel):
-    own = rel.split("/")[0].removesuffix(".py")
+    own = part(module_name(rel))
     above = {p for p in imported_parts(PACKAGE / rel) if LAYER[p] > LAYER[own]}
     assert not above, f"orgnav_jax/{rel} ({own}) imports a higher layer: {sorted(above)}"
 
@@ -75,3 +96,13 @@ def test_the_check_sees_function_level_imports(tmp_path):
     f.write_text("def g():\n    from orgnav_jax.tpn.config import X\n    import orgnav_jax.api\n"
                  "from orgnav_jax import episodes\n")
     assert imported_parts(f) == {"tpn", "api", "episodes"}
+
+
+def test_the_check_sees_the_parts_of_scenes(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("from orgnav_jax.scenes import offline, build\n"
+                 "from orgnav_jax.scenes.synthetic.builder import build\n"
+                 "import orgnav_jax.scenes.cli\n")
+    assert imported_parts(f) == {"scenes.offline", "scenes", "scenes.synthetic", "scenes.cli"}
+    assert part(module_name("scenes/sceneset/__init__.py")) == "scenes.sceneset"
+    assert part(module_name("scenes/__init__.py")) == "scenes"

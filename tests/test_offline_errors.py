@@ -15,7 +15,7 @@ import pytest
 from test_offline_handmade import CAN_AT, SINK_AT, START, write_scene
 
 from orgnav_jax.constants import CATEGORIES
-from orgnav_jax.offline_episodes import load_offline_episodes, read_records
+from orgnav_jax.scenes.offline.episodes import load_offline_episodes, read_records
 from orgnav_jax.scenes.offline import OfflineFormatError, import_offline
 
 

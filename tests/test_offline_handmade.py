@@ -18,8 +18,8 @@ import pytest
 
 from orgnav_jax import constants as K
 from orgnav_jax.scenes import NO_ACTION, UNREACHABLE
-from orgnav_jax.scenes.keys import key_index, state_key
-from orgnav_jax.offline_episodes import load_offline_episodes
+from orgnav_jax.scenes.sceneset.keys import key_index, state_key
+from orgnav_jax.scenes.offline.episodes import load_offline_episodes
 from orgnav_jax.scenes.offline import OfflineFormatError, import_offline
 
 XS, ZS = (-0.50, -0.25, 0.00), (1.00, 1.25, 1.50)
@@ -244,7 +244,7 @@ def test_ragged_rooms_are_stored_flat(imported):
     """128- and 32-state rooms take 160 rows (nothing padded); the small room's moves are
     global indices inside its own run; padded back (flat.to_padded), it follows the old
     padding conventions."""
-    from orgnav_jax.scenes.flat import to_padded
+    from orgnav_jax.scenes.sceneset.flat import to_padded
     scenes, _, _ = imported
     assert np.asarray(scenes.state_offset).tolist() == [0, 128]
     nxt = np.asarray(scenes.next_state)

@@ -16,12 +16,12 @@ import pytest
 from orgnav_jax import scenes as S
 from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.scenes.__main__ import main
-from orgnav_jax.scenes.builder import feature_bases, room_arrays, stack_rooms
-from orgnav_jax.scenes.keys import key_index, scene_state_keys
-from orgnav_jax.offline_episodes import load_offline_episodes, write_offline_episodes
+from orgnav_jax.scenes.synthetic.builder import feature_bases, room_arrays, stack_rooms
+from orgnav_jax.scenes.sceneset.keys import key_index, scene_state_keys
+from orgnav_jax.scenes.offline.episodes import load_offline_episodes, write_offline_episodes
 from orgnav_jax.scenes.offline import export_offline, import_offline
 from orgnav_jax.scenes.offline.exporter import decoded_features
-from orgnav_jax.scenes.presets import get_preset
+from orgnav_jax.scenes.synthetic.presets import get_preset
 
 PER_STATE = ("next_state", "pose", "visible", "dist", "expert_action", "det_box", "det_conf")
 PER_SCENE = ("present", "targets", "state_count", "room_type", "scene_id", "split")

@@ -248,7 +248,7 @@ def test_adjacency_json_has_the_report_keys(tmp_path, monkeypatch, capsys):
 
 def cooccurrence_anchor_matrix():
     """1 on every (object, anchor) pair of the generator's rules."""
-    from orgnav_jax.scenes.catalog import ANCHORS
+    from orgnav_jax.scenes.synthetic.catalog import ANCHORS
     M = np.zeros((C, C))
     for o, anchors in ANCHORS.items():
         for a in anchors:

@@ -30,12 +30,13 @@ from orgnav_jax import constants as K
 from orgnav_jax import env
 from orgnav_jax import scenes as S
 from orgnav_jax.episodes import sample_episodes, save_episodes
-from orgnav_jax.scenes import cache, storage
+from orgnav_jax.scenes.synthetic import cache
+from orgnav_jax.scenes.sceneset import storage
 from orgnav_jax.scenes.__main__ import main
-from orgnav_jax.scenes.flat import padded_valid, to_padded
-from orgnav_jax.scenes.keys import state_key
-from orgnav_jax.scenes.quantize import quantize_features
-from orgnav_jax.scenes.sceneset import PER_STATE_FIELDS, UNREACHABLE
+from orgnav_jax.scenes.sceneset.flat import padded_valid, to_padded
+from orgnav_jax.scenes.sceneset.keys import state_key
+from orgnav_jax.scenes.sceneset.quantize import quantize_features
+from orgnav_jax.scenes.sceneset.fields import PER_STATE_FIELDS, UNREACHABLE
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,8 @@ import pytest
 
 from orgnav_jax import constants as K
 from orgnav_jax import scenes
-from orgnav_jax.scenes import storage
-from orgnav_jax.scenes.presets import ScenePreset, get_preset
+from orgnav_jax.scenes.sceneset import storage
+from orgnav_jax.scenes.synthetic.presets import ScenePreset, get_preset
 
 
 def assert_same_sceneset(a: scenes.SceneSet, b: scenes.SceneSet) -> None:
@@ -310,7 +310,7 @@ def test_select_errors(tiny_scenes):
 
 
 def test_load_or_build_caches(bath, tmp_path, monkeypatch):
-    from orgnav_jax.scenes import cache
+    from orgnav_jax.scenes.synthetic import cache
     calls = []
 
     def fake_build(preset, seed, progress=False):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from orgnav_jax import constants as K
-from orgnav_jax.scenes import detector, geometry
+from orgnav_jax.scenes.synthetic import detector, geometry
 
 SHAPE = (12, 9)          # rows 0..11 (z = 0 .. 2.75 m), cols 0..8 (x = 0 .. 2 m)
 AGENT = (2, 4)           # x = 1.0 m, z = 0.5 m

@@ -18,7 +18,7 @@ from orgnav_jax.constants import FEATURE_GRID, IMAGE_SIZE
 from orgnav_jax.models.encoders import BaselineEncoder, WordEmbeddingEncoder
 from orgnav_jax.models.org import ORGEncoder, ReleasedORGEncoder, dsp_from_scenes
 from orgnav_jax.models.trunk import Trunk
-from orgnav_jax.scenes.features import gather_features
+from orgnav_jax.scenes.sceneset.features import gather_features
 
 
 class ModelInputs(NamedTuple):

@@ -19,7 +19,7 @@ as bars labelled with the action taken there.
 
 draws the learned adjacency A (C x C) of an `org` run (or the fixed prior graph of a `dsp`
 run) with category names on both axes, marks the generator's co-occurrence pairs
-(scenes/catalog.py ANCHORS) and prints whether A ranks them above the other pairs.
+(scenes/synthetic/catalog.py ANCHORS) and prints whether A ranks them above the other pairs.
 
     python -m orgnav_jax.plots curves RUN_DIR... [--out PNG] [--metrics success spl]
                                       [--band minmax|std]

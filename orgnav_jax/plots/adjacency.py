@@ -1,5 +1,5 @@
 """ORG's learned adjacency (or D-SP's prior graph) as a category heat map, and whether
-it ranks the generator's co-occurrence pairs (scenes/catalog.py ANCHORS) high."""
+it ranks the generator's co-occurrence pairs (scenes/synthetic/catalog.py ANCHORS) high."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 
 from orgnav_jax.constants import CATEGORIES, CATEGORY_INDEX, TARGETS
 from orgnav_jax.plots.common import save_png
-from orgnav_jax.scenes.catalog import ANCHORS
+from orgnav_jax.scenes.synthetic.catalog import ANCHORS
 
 
 def anchor_pairs() -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:

@@ -25,7 +25,7 @@ def trace_run_episode(run_dir: str | Path, episode: int = 0, split: str = "test"
     from orgnav_jax import api, env, evaluation
     from orgnav_jax.constants import EPISODES_PER_ROOM_TYPE
     from orgnav_jax.episodes import load_episodes, sample_episodes
-    from orgnav_jax.scenes.cache import device_split
+    from orgnav_jax.scenes.synthetic.cache import device_split
     loaded = api.load_run(run_dir, **(test_time or {}))
     scenes = device_split(loaded.scene_preset, loaded.scene_seed, loaded.scenes_dir, split)
     episodes = (load_episodes(episodes_file, scenes) if episodes_file else

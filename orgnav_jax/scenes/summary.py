@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from orgnav_jax.constants import CATEGORIES, ROOM_TYPES, SPLITS, TARGETS, category_index
-from orgnav_jax.scenes.catalog import ANCHOR_PROBABILITY
-from orgnav_jax.scenes.presets import SCENE_PRESETS
-from orgnav_jax.scenes.sceneset import PER_STATE_FIELDS, UNREACHABLE, SceneSet
+from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
+from orgnav_jax.scenes.synthetic.presets import SCENE_PRESETS
+from orgnav_jax.scenes.sceneset.fields import PER_STATE_FIELDS, UNREACHABLE
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
 
 def summarize(scenes: SceneSet) -> dict:

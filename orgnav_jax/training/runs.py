@@ -32,7 +32,7 @@ def model_policy(model, name: str = "Model") -> Policy:
 
 def scenes_for(cfg: TrainConfig):
     """The full SceneSet a config trains on (cached preset or a saved directory),
-    memory-mapped: nothing of it is read until a split view is used (scenes.cache; the
+    memory-mapped: nothing of it is read until a split view is used (scenes/synthetic/cache.py; the
     last one loaded is kept)."""
     from orgnav_jax.scenes import load_scenes
     return load_scenes(cfg.scene_preset, cfg.scene_seed, cfg.scenes_dir)

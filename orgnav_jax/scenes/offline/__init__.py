@@ -1,7 +1,8 @@
 """The authors' offline AI2-THOR data format (see docs/offline.md):
-import FloorPlanN folders into a SceneSet and export any SceneSet to them. (Their
-evaluation episodes, JSON or pickle, are read and written by orgnav_jax.offline_episodes,
-beside orgnav_jax.episodes: episodes sit above scenes.)
+import FloorPlanN folders into a SceneSet and export any SceneSet to them; their
+evaluation episodes, JSON or pickle, are read and written by
+orgnav_jax.scenes.offline.episodes (it needs orgnav_jax.episodes, so this package sits
+above the episodes and the env; nothing below imports it).
 
     from orgnav_jax import scenes
     from orgnav_jax.scenes import offline

@@ -6,7 +6,7 @@ absent as in the release), grid.json (reachable points, y = files.GRID_Y),
 visible_object_map_1.5.json, optimal_action.json (our expert; only where a path
 exists), resnet18_featuremap.hdf5 ((1, G, 7, 7) per state) and
 fasterrcnn_features_22cls.hdf5 ((22, d + 5) per state), features decoded at the
-SceneSet's widths with scenes.features.decode_*.
+SceneSet's widths with sceneset/features.py decode_*.
 
 Output folder: absent, empty, or an export of ours (is_offline_export: the marker file
 orgnav_export.json, FloorPlanN folders holding only the files above, and the episode
@@ -37,11 +37,12 @@ from tqdm.auto import tqdm
 
 from orgnav_jax.constants import CATEGORIES, DONE, SPLITS
 from orgnav_jax.safe_write import check_output_dir
-from orgnav_jax.scenes.features import decode_appearance, decode_global
-from orgnav_jax.scenes.keys import scene_state_keys
+from orgnav_jax.scenes.sceneset.features import decode_appearance, decode_global
+from orgnav_jax.scenes.sceneset.keys import scene_state_keys
 from orgnav_jax.scenes.offline import files
 from orgnav_jax.scenes.offline.validate import SCENE_NAME
-from orgnav_jax.scenes.sceneset import UNREACHABLE, SceneSet
+from orgnav_jax.scenes.sceneset.fields import UNREACHABLE
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
 CHUNK = 256  # states decoded per jitted call (fixed: one compile per feature width)
 OBJECT_Y = 1.0

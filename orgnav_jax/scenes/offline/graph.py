@@ -1,7 +1,7 @@
 """State order and transitions of an imported scene, recovered from poses alone.
 
 The authors' graph.json has unlabelled edges; the action of an edge u -> v is the one
-whose successor pose (geometry.HEADING_STEP, rotation +-45, horizon 30 <-> 0) is v.
+whose successor pose (constants.HEADING_STEP, rotation +-45, horizon 30 <-> 0) is v.
 Positions (x, z) in metres, possibly negative, map to grid cells
 row = round((z - z_min) / 0.25), col = round((x - x_min) / 0.25).
 """
@@ -11,10 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from orgnav_jax.constants import (
-    GRID_SIZE, HORIZONS, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, NUM_HEADINGS,
-    ROTATE_LEFT, ROTATE_RIGHT, ROTATION_STEP,
+    GRID_SIZE, HEADING_STEP, HORIZONS, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS,
+    NUM_HEADINGS, ROTATE_LEFT, ROTATE_RIGHT, ROTATION_STEP,
 )
-from orgnav_jax.scenes.geometry import HEADING_STEP
 from orgnav_jax.scenes.offline.validate import OfflineFormatError, examples
 
 OFF_GRID_TOLERANCE = 0.2  # cells: |(x - x_min) / 0.25 - col| above this is not on the grid
@@ -61,7 +60,7 @@ def edge_actions(grid: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarr
     d_head = (b[:, 2] - a[:, 2]) % NUM_HEADINGS
     same_cell = (d_row == 0) & (d_col == 0)
     same_view = (d_head == 0) & (b[:, 3] == a[:, 3])
-    step = HEADING_STEP[a[:, 2]]
+    step = np.array(HEADING_STEP)[a[:, 2]]
     out = np.full(len(src), -1, np.int64)
     move = same_view & (d_row == step[:, 0]) & (d_col == step[:, 1])
     out[move] = MOVE_AHEAD

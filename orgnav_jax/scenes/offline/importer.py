@@ -1,17 +1,18 @@
 """Import the authors' offline AI2-THOR data (FloorPlanN folders) into a SceneSet.
 
 Two passes: (1) read and cross-check every scene's JSON files and hdf5 headers, which
-fixes N, the state counts and the feature widths; (2) allocate the flat float16 arrays
-(T states of all rooms, no padding) once and stream the features into them state by
-state. Expert tables are ours (scenes.expert.expert_tables); optimal_action.json, when
-present, is only compared.
+fixes N, the state counts and the feature widths; (2) hand the rooms to the SceneSet
+assembly (sceneset/assemble.py), which allocates the flat float16 arrays (T states of
+all rooms, no padding) once; each room's features are streamed into its rows state by
+state. Expert tables are ours (sceneset/expert.py); optimal_action.json, when present,
+is only compared.
 
 Imported SceneSets hold the features themselves (bases None): appearance (T, C, d),
-global_feat (T, 7, 7, G), both float16 (scenes.quantize makes them int8 on request).
+global_feat (T, 7, 7, G), both float16 (sceneset/quantize.py makes them int8 on request).
 Poses keep the authors' metres (possibly negative) so that state_key(pose) reproduces
 their keys; states are ordered by grid row
 (z), column (x), heading, horizon within each room; rooms are stored grouped by split
-(sceneset.storage_offsets).
+(assemble.py).
 """
 
 from __future__ import annotations
@@ -20,14 +21,10 @@ import os
 import time
 from pathlib import Path
 
-import numpy as np
 from tqdm.auto import tqdm
 
-from orgnav_jax.constants import NUM_ACTIONS, NUM_CATEGORIES
+from orgnav_jax.constants import NUM_CATEGORIES
 from orgnav_jax.safe_write import check_output_dir
-from orgnav_jax.scenes.builder import STORE_DTYPE, valid_targets
-from orgnav_jax.scenes.sceneset import FORMAT_NAME, FORMAT_VERSION
-from orgnav_jax.scenes.flat import flat_expert_tables
 from orgnav_jax.scenes.offline import files
 from orgnav_jax.scenes.offline.features_io import (
     FeatureLayout, detection_rows, find_detection_file, inspect_scene, stream_scene,
@@ -36,8 +33,10 @@ from orgnav_jax.scenes.offline.optimal import compare_optimal
 from orgnav_jax.scenes.offline.reader import SceneGraph, read_scene
 from orgnav_jax.scenes.offline.splits import assign_splits
 from orgnav_jax.scenes.offline.validate import SCENE_NAME, OfflineFormatError, examples
-from orgnav_jax.scenes.sceneset import SceneSet, storage_offsets
-from orgnav_jax.scenes.storage import is_scene_set, save
+from orgnav_jax.scenes.sceneset.assemble import SourceRoom, assemble
+from orgnav_jax.scenes.sceneset.fields import FORMAT_INFO
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
+from orgnav_jax.scenes.sceneset.storage import is_scene_set, save
 
 
 def scene_folders(offline_dir: str | os.PathLike, names=None) -> list[Path]:
@@ -77,6 +76,22 @@ def _layout(graphs, det_paths, detection_rows_arg) -> FeatureLayout:
                 f"{g.folder}: feature shapes resnet {gshape}, detection {dshape} differ from "
                 f"{graphs[0].folder.name}'s {layout.global_shape}, {layout.det_shape}")
     return layout
+
+
+def _room(g: SceneGraph, det: Path, layout: FeatureLayout, clock: dict) -> SourceRoom:
+    """A scene graph as the assembly takes it; its features are streamed from the hdf5
+    files into the room's rows when the assembly fills them (the seconds spent add to
+    clock["features"])."""
+    def features(out: dict) -> None:
+        t = time.perf_counter()
+        try:
+            stream_scene(g.folder, g.keys, det, layout, out["global_feat"],
+                         out["appearance"], out["det_box"], out["det_conf"])
+        finally:
+            clock["features"] += time.perf_counter() - t
+    return SourceRoom(scene_id=g.number, room_type=g.room_type, split=g.split,
+                      next_state=g.next_state, pose=g.pose, visible=g.visible,
+                      present=g.present, features=features)
 
 
 def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_file=None,
@@ -120,54 +135,24 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
     layout = _layout(graphs, det_paths, detection_rows)
     t_json = time.perf_counter() - t0
 
-    N, C = len(graphs), NUM_CATEGORIES
-    counts = np.array([len(g.keys) for g in graphs], np.int32)
-    split = np.array([g.split for g in graphs], np.int32)
-    offsets = storage_offsets(split, counts)
-    T, S = int(counts.sum()), int(counts.max())
-    d, G = layout.appearance_dim, layout.global_dim
-    next_state = np.zeros((T, NUM_ACTIONS), np.int32)
-    pose = np.zeros((T, 4), np.float32)
-    visible = np.zeros((T, C), bool)
-    glob = np.zeros((T, 7, 7, G), STORE_DTYPE)
-    appearance = np.zeros((T, C, d), STORE_DTYPE)
-    det_box = np.zeros((T, C, 4), STORE_DTYPE)
-    det_conf = np.zeros((T, C), STORE_DTYPE)
-    t1 = time.perf_counter()
-    with tqdm(list(zip(graphs, det_paths)), desc="features", disable=not progress) as bar:
-        for n, (g, det) in enumerate(bar):
-            o, k = int(offsets[n]), len(g.keys)
-            rows = slice(o, o + k)
-            next_state[rows] = g.next_state + o      # global flat indices
-            pose[rows], visible[rows] = g.pose, g.visible
-            stream_scene(g.folder, g.keys, det, layout, glob[rows], appearance[rows],
-                         det_box[rows], det_conf[rows])
-    t_feat = time.perf_counter() - t1
-
-    t2 = time.perf_counter()
-    dist, action = flat_expert_tables(next_state, visible, offsets, counts)
-    t_expert = time.perf_counter() - t2
-    room_type = np.array([g.room_type for g in graphs], np.int32)
-    present = np.stack([g.present for g in graphs])
+    t1, clock = time.perf_counter(), {"features": 0.0}
+    out = assemble([_room(g, det, layout, clock) for g, det in zip(graphs, det_paths)],
+                   info=FORMAT_INFO + (("preset", "offline"),
+                                       ("source", str(Path(offline_dir).resolve())),
+                                       ("detection_file", det_paths[0].name)),
+                   widths=(layout.appearance_dim, layout.global_dim), progress=progress)
+    t_feat = clock["features"]
+    t_expert = time.perf_counter() - t1 - t_feat    # the rest of assemble: expert tables
     per_scene = []
     for n, g in enumerate(graphs):
-        rows = slice(int(offsets[n]), int(offsets[n]) + len(g.keys))
+        rows = out.state_slice(n)
         rep = dict(g.report, detection_file=det_paths[n].name)
         if g.authors_action is not None:
             rep["optimal_action"] = compare_optimal(g.authors_action,
-                                                    next_state[rows] - rows.start,
-                                                    dist[rows], action[rows], g.keys)
+                                                    out.next_state[rows] - rows.start,
+                                                    out.dist[rows], out.expert_action[rows],
+                                                    g.keys)
         per_scene.append(rep)
-    out = SceneSet(
-        next_state=next_state, pose=pose, visible=visible, present=present,
-        targets=valid_targets(room_type, present, dist, offsets, counts),
-        state_offset=offsets, state_count=counts,
-        dist=dist, expert_action=action, det_box=det_box, det_conf=det_conf,
-        appearance=appearance, global_feat=glob, room_type=room_type,
-        scene_id=np.array(numbers, np.int32), split=split,
-        info=(("format", FORMAT_NAME), ("version", FORMAT_VERSION), ("preset", "offline"),
-              ("source", str(Path(offline_dir).resolve())),
-              ("detection_file", det_paths[0].name)))
     if splits is not None:  # custom names first: validate's messages use scene_names
         out = out.replace(info=out.info + (("splits", str(Path(splits).resolve())),) + (
             (("room_names", tuple(custom.values())), ("room_name_ids", tuple(custom)))
@@ -175,8 +160,9 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
     out.validate(str(offline_dir))
     opt = [r["optimal_action"] for r in per_scene if "optimal_action" in r]
     report = {
-        "scenes": per_scene, "num_scenes": N, "states": T, "max_states": S,
-        "global_dim": G, "appearance_dim": d, "detection_rows": int(layout.det_shape[0]),
+        "scenes": per_scene, "num_scenes": out.num_scenes, "states": out.num_states,
+        "max_states": out.max_states, "global_dim": layout.global_dim,
+        "appearance_dim": layout.appearance_dim, "detection_rows": int(layout.det_shape[0]),
         "seconds": {"json": round(t_json, 3), "features": round(t_feat, 3),
                     "expert": round(t_expert, 3)},
         "optimal_action": {k: sum(o[k] for o in opt) for k in
@@ -189,11 +175,11 @@ def import_offline(offline_dir: str | os.PathLike, scenes=None, *, detection_fil
 def import_to(offline_dir: str | os.PathLike, out: str | os.PathLike,
               features: str | None = None, **kwargs) -> tuple[SceneSet, dict]:
     """import_offline, then scenes.save to `out` (loads with scenes.load(out)).
-    features: 'float16' (default) or 'int8' (scenes.quantize: per-channel scales).
+    features: 'float16' (default) or 'int8' (sceneset/quantize.py: per-channel scales).
 
     `out` must be absent, empty or a SceneSet (checked before importing); anything else
     is refused and left untouched."""
-    from orgnav_jax.scenes.quantize import FEATURE_DTYPES, with_features
+    from orgnav_jax.scenes.sceneset.quantize import FEATURE_DTYPES, with_features
     if features is not None and features not in FEATURE_DTYPES:
         raise ValueError(f"features {features!r}: expected one of {list(FEATURE_DTYPES)}")
     check_output_dir(out, is_scene_set, "a SceneSet")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from orgnav_jax.constants import ACTIONS, CATEGORIES, DONE
-from orgnav_jax.scenes.sceneset import UNREACHABLE
+from orgnav_jax.scenes.sceneset.fields import UNREACHABLE
 
 EXAMPLES = 5
 

@@ -16,7 +16,7 @@ from orgnav_jax.constants import (
     CATEGORY_INDEX, FLOORPLAN_OFFSET, HORIZONS, NUM_HEADINGS, ROOM_TYPE_INDEX, ROTATION_STEP,
     SPLIT_INDEX,
 )
-from orgnav_jax.scenes.keys import parse_state_key, state_key
+from orgnav_jax.scenes.sceneset.keys import parse_state_key, state_key
 
 SCENE_NAME = re.compile(r"^FloorPlan(\d+)(_physics)?$")
 EXAMPLES = 3  # offending items quoted in a message

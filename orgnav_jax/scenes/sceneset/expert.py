@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from orgnav_jax.constants import DONE
-from orgnav_jax.scenes.sceneset import NO_ACTION, UNREACHABLE
+from orgnav_jax.scenes.sceneset.fields import NO_ACTION, UNREACHABLE
 
 
 def _room_tables(next_state: jax.Array, visible: jax.Array, valid: jax.Array):

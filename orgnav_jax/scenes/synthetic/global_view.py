@@ -18,8 +18,8 @@ from orgnav_jax.constants import (
     CAMERA_HEIGHT, FEATURE_GRID, GRID_SIZE, HORIZONS, NUM_CATEGORIES, NUM_HEADINGS,
     ROTATION_STEP,
 )
-from orgnav_jax.scenes.catalog import FURNITURE
-from orgnav_jax.scenes.geometry import STATES_PER_CELL
+from orgnav_jax.scenes.synthetic.catalog import FURNITURE
+from orgnav_jax.scenes.synthetic.geometry import STATES_PER_CELL
 
 GLOBAL_CODE_DIM = 12
 MARCH_STEP = 0.06     # metres between ray samples

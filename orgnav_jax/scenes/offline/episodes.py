@@ -19,10 +19,10 @@ import numpy as np
 
 from orgnav_jax.constants import CATEGORIES
 from orgnav_jax.episodes import EpisodeSet, from_records
-from orgnav_jax.scenes.keys import state_key
+from orgnav_jax.scenes.sceneset.keys import state_key
 from orgnav_jax.scenes.offline.exporter import object_ids
 from orgnav_jax.scenes.offline.validate import OfflineFormatError, object_type
-from orgnav_jax.scenes.sceneset import SceneSet
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
 PICKLE_SUFFIXES = (".pkl", ".pickle", ".p")
 

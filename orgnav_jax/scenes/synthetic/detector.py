@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from orgnav_jax.constants import CATEGORIES, IMAGE_SIZE, NUM_CATEGORIES
-from orgnav_jax.scenes.catalog import OBJECTS
-from orgnav_jax.scenes.geometry import to_camera
+from orgnav_jax.scenes.synthetic.catalog import OBJECTS
+from orgnav_jax.scenes.synthetic.geometry import to_camera
 
 DETECT_RANGE = np.array([OBJECTS[c].detect_range for c in CATEGORIES], np.float32)
 MAX_DETECT_DISTANCE = 6.5      # metres; beyond this nothing is detected

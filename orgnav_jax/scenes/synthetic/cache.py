@@ -15,11 +15,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from orgnav_jax.scenes.builder import build
-from orgnav_jax.scenes.sceneset import FORMAT_VERSION
-from orgnav_jax.scenes.presets import get_preset
-from orgnav_jax.scenes.sceneset import SceneSet
-from orgnav_jax.scenes.storage import META_FILE, load, save
+from orgnav_jax.scenes.synthetic.builder import build
+from orgnav_jax.scenes.sceneset.fields import FORMAT_VERSION
+from orgnav_jax.scenes.synthetic.presets import get_preset
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
+from orgnav_jax.scenes.sceneset.storage import META_FILE, load, save
 
 
 def default_cache_dir() -> Path:

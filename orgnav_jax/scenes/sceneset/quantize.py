@@ -6,7 +6,7 @@
 
 Symmetric per-channel quantization: scale[c] = max |x[..., c]| / 127 over all states
 (1 where a channel is all zero), q = round(x / scale) in -127..127; decoded inside jit as
-q * scale (scenes.features). The error of one value is at most scale[c] / 2. Halves the
+q * scale (features.py). The error of one value is at most scale[c] / 2. Halves the
 feature bytes of float16 storage; for users at the memory limit (docs/benchmark.md).
 """
 
@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from orgnav_jax.scenes.sceneset import SCALE_OF, SceneSet
+from orgnav_jax.scenes.sceneset.fields import SCALE_OF
+
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
 FEATURE_DTYPES = ("float16", "int8")
 QMAX = 127

@@ -3,7 +3,7 @@
 Axes: N scenes, T states (the rooms' states one after another: one flat axis, nothing
 padded to the largest room), A = 6 actions, C = 22 categories. Room n owns the flat
 states state_offset[n] .. state_offset[n] + state_count[n] - 1; the rooms' ranges
-partition 0..T-1 but need not follow the scene order (builders store the rooms grouped
+partition 0..T-1 but need not follow the scene order (assemble.py stores the rooms grouped
 by split, so that a split view is one contiguous run: a slice of a memory map, no copy).
 
 Index convention: `next_state` holds GLOBAL flat indices (a room's moves stay inside
@@ -12,7 +12,7 @@ indices; episodes (EpisodeSet, episode files) and `state_count` are per room, LO
 global = state_offset[scene] + local (SceneSet.global_state).
 
 Large features are stored compactly and decoded inside jit by
-`orgnav_jax.scenes.features`: for synthetic scenes `global_feat` and `appearance` hold
+`orgnav_jax.scenes.sceneset.features`: for synthetic scenes `global_feat` and `appearance` hold
 low-dimensional 16-bit codes and the `*_basis` / `appearance_proto` arrays project them
 to the preset's widths (G, d); for imported offline data the bases are None and the
 stored arrays are the features themselves, float16, or int8 with a per-channel float32
@@ -27,19 +27,8 @@ import numpy as np
 from flax import struct
 
 from orgnav_jax.constants import ROOM_TYPES, split_index
-
-FORMAT_NAME = "orgnav_jax.sceneset"   # meta.json "format" and SceneSet.info of saved sets
-FORMAT_VERSION = 2  # 2: flat (unpadded) state axis, state_offset, optional int8 scales;
-                    # 1: every room padded to the largest (read by storage.load, converted)
-UNREACHABLE = 32767   # dist sentinel (int16 max): no state where the category is visible can be reached
-NO_ACTION = -1        # expert_action sentinel for unreachable targets
-PER_STATE_FIELDS = ("next_state", "pose", "visible", "dist", "expert_action", "det_box",
-                    "det_conf", "appearance", "global_feat")
-PER_SCENE_FIELDS = ("present", "targets", "state_offset", "state_count", "room_type",
-                    "scene_id", "split")
-SHARED_FIELDS = ("appearance_proto", "appearance_basis", "global_basis", "global_scale",
-                 "appearance_scale", "info")
-SCALE_OF = {"global_feat": "global_scale", "appearance": "appearance_scale"}
+from orgnav_jax.scenes.sceneset.checks import validate_shapes, validate_values
+from orgnav_jax.scenes.sceneset.fields import PER_SCENE_FIELDS, PER_STATE_FIELDS
 
 
 @struct.dataclass
@@ -186,8 +175,7 @@ class SceneSet:
     def validate(self, source: str = "SceneSet") -> None:
         """Check shapes, dtypes and every value the environment relies on; raise a
         one-line ValueError naming the field, the scene (index and FloorPlan name), the
-        state and the category of the first bad value (scenes.checks.validate_values)."""
-        from orgnav_jax.scenes.checks import validate_shapes, validate_values
+        state and the category of the first bad value (checks.validate_values)."""
         validate_shapes(self, source)
         validate_values(self, source)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 from orgnav_jax.constants import FLOORPLAN_OFFSET, ROOM_TYPES, SPLITS
-from orgnav_jax.scenes.catalog import ANCHOR_PROBABILITY
+from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,7 +31,7 @@ class ScenePreset:
     anchor_probability: float = ANCHOR_PROBABILITY
 
     def __post_init__(self):
-        from orgnav_jax.scenes.layout import ROOM_SIZE_PROFILES
+        from orgnav_jax.scenes.synthetic.layout import ROOM_SIZE_PROFILES
         if not 0.0 <= self.anchor_probability <= 1.0:
             raise ValueError(f"preset {self.name!r}: anchor_probability "
                              f"{self.anchor_probability!r}, expected 0 <= p <= 1")

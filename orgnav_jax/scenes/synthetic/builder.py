@@ -1,5 +1,5 @@
-"""Build a SceneSet from a preset and a seed: rooms -> observations -> flat arrays ->
-expert tables."""
+"""Build a SceneSet from a preset and a seed: rooms -> observations -> per-room arrays,
+assembled into a SceneSet (sceneset/assemble.py: flat layout, expert tables)."""
 
 from __future__ import annotations
 
@@ -8,25 +8,19 @@ import dataclasses
 import numpy as np
 from tqdm.auto import tqdm
 
-from orgnav_jax.constants import (
-    NUM_CATEGORIES, ROOM_TYPE_INDEX, ROOM_TYPES, SPLIT_INDEX, TARGETS,
-    category_index,
-)
-from orgnav_jax.scenes import detector, geometry, global_view
-from orgnav_jax.scenes.flat import flat_expert_tables
-from orgnav_jax.scenes.catalog import ANCHOR_PROBABILITY
-from orgnav_jax.scenes.layout import Room, generate_room
-from orgnav_jax.scenes.presets import ScenePreset, get_preset
-from orgnav_jax.scenes.sceneset import (
-    FORMAT_NAME, FORMAT_VERSION, UNREACHABLE, SceneSet, storage_offsets,
-)
-
-STORE_DTYPE = np.float16
+from orgnav_jax.constants import NUM_CATEGORIES, ROOM_TYPE_INDEX, SPLIT_INDEX
+from orgnav_jax.scenes.sceneset import assemble
+from orgnav_jax.scenes.sceneset.fields import FORMAT_INFO
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
+from orgnav_jax.scenes.synthetic import detector, geometry, global_view
+from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
+from orgnav_jax.scenes.synthetic.layout import Room, generate_room
+from orgnav_jax.scenes.synthetic.presets import ScenePreset, get_preset
 
 
 @dataclasses.dataclass
 class RoomArrays:
-    """Per-room arrays before stacking; S = 16 * reachable cells."""
+    """A generated room's arrays (S = 16 * reachable cells); .room() for assembly."""
     floorplan: int
     room_type: int
     split: int
@@ -38,6 +32,14 @@ class RoomArrays:
     det_conf: np.ndarray     # (S, C)
     appearance: np.ndarray   # (S, C, Da)
     global_feat: np.ndarray  # (S, 7, 7, Dg)
+
+    def room(self) -> assemble.SourceRoom:
+        """This room as the SceneSet assembly takes it (features: the 16-bit codes)."""
+        return assemble.SourceRoom(
+            scene_id=self.floorplan, room_type=self.room_type, split=self.split,
+            next_state=self.next_state, pose=self.pose, visible=self.visible,
+            present=self.present,
+            features={k: getattr(self, k) for k in assemble.FEATURE_FIELDS})
 
 
 def room_detections(room: Room, seed: int, cells: np.ndarray, poses: np.ndarray):
@@ -91,45 +93,8 @@ def feature_bases(preset: ScenePreset) -> dict[str, np.ndarray]:
 
 
 def stack_rooms(rooms: list[RoomArrays], **extra) -> SceneSet:
-    """Concatenate rooms on one flat state axis (grouped by split,
-    sceneset.storage_offsets) and compute the expert tables."""
-    counts = np.array([len(r.pose) for r in rooms], np.int32)
-    split = np.array([r.split for r in rooms], np.int32)
-    offsets = storage_offsets(split, counts)
-    order = np.argsort(offsets, kind="stable")
-    fields = {
-        "next_state": np.concatenate([rooms[n].next_state.astype(np.int32) + offsets[n]
-                                      for n in order]),
-        "pose": np.concatenate([rooms[n].pose for n in order]).astype(np.float32),
-        "visible": np.concatenate([rooms[n].visible for n in order]).astype(bool),
-    }
-    for name in ("det_box", "det_conf", "appearance", "global_feat"):
-        fields[name] = np.concatenate([getattr(rooms[n], name) for n in order]
-                                      ).astype(STORE_DTYPE)
-    dist, action = flat_expert_tables(fields["next_state"], fields["visible"], offsets, counts)
-    room_type = np.array([r.room_type for r in rooms], np.int32)
-    present = np.stack([r.present for r in rooms])
-    return SceneSet(
-        dist=dist, expert_action=action, present=present,
-        targets=valid_targets(room_type, present, dist, offsets, counts),
-        state_offset=offsets, state_count=counts, room_type=room_type,
-        scene_id=np.array([r.floorplan for r in rooms], np.int32), split=split,
-        **fields, **extra,
-    )
-
-
-def valid_targets(room_type: np.ndarray, present: np.ndarray, dist: np.ndarray,
-                  offsets: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """(N,) room types, (N, C) present, (T, C) flat dist, (N,) state offsets and counts
-    -> (N, C) bool episode targets: a target of the room type (constants.TARGETS),
-    present, and reachable (visible from some state; the state graph of a room is
-    strongly connected)."""
-    of_type = np.zeros((len(ROOM_TYPES), NUM_CATEGORIES), bool)
-    for t, names in enumerate(ROOM_TYPES):
-        of_type[t, [category_index(c) for c in TARGETS[names]]] = True
-    reachable = np.stack([(dist[o:o + k] < UNREACHABLE).any(0)
-                          for o, k in zip(np.asarray(offsets), np.asarray(counts))])
-    return of_type[room_type] & present & reachable
+    """The SceneSet of these rooms (assemble.assemble; extra: info and the bases)."""
+    return assemble.assemble([r.room() for r in rooms], **extra)
 
 
 def build(preset: str | ScenePreset = "small", seed: int = 0, *, progress: bool = False,
@@ -152,10 +117,10 @@ def build(preset: str | ScenePreset = "small", seed: int = 0, *, progress: bool 
                          anchor_probability=p.anchor_probability)
              for fp, _, split in tqdm(plans, desc=f"rooms ({p.name})", disable=not progress,
                                       unit="room")]
-    info = (("format", FORMAT_NAME), ("version", FORMAT_VERSION), ("preset", p.name),
-            ("seed", int(seed)), ("rooms_per_type", tuple(p.rooms_per_type)))
+    info = FORMAT_INFO + (("preset", p.name), ("seed", int(seed)),
+                          ("rooms_per_type", tuple(p.rooms_per_type)))
     if p.room_sizes != "default" or p.num_rooms is not None:
         info += (("room_sizes", p.room_sizes), ("num_rooms", len(plans)))
     if p.anchor_probability != ANCHOR_PROBABILITY:     # (default sets keep their info)
         info += (("anchor_probability", float(p.anchor_probability)),)
-    return stack_rooms(rooms, info=info, **{k: v for k, v in feature_bases(p).items()})
+    return stack_rooms(rooms, info=info, **feature_bases(p))

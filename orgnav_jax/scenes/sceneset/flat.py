@@ -15,10 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from orgnav_jax.constants import NUM_ACTIONS
-from orgnav_jax.scenes.expert import expert_tables
-from orgnav_jax.scenes.sceneset import (
-    NO_ACTION, PER_STATE_FIELDS, UNREACHABLE, SceneSet, storage_offsets,
-)
+from orgnav_jax.scenes.sceneset.expert import expert_tables
+from orgnav_jax.scenes.sceneset.fields import NO_ACTION, PER_STATE_FIELDS, UNREACHABLE
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet, storage_offsets
 
 EXPERT_CHUNK = 8  # rooms per expert-table call (bounds memory; one compile)
 
@@ -28,7 +27,7 @@ def flat_expert_tables(next_state, visible, offsets, counts, chunk: int = EXPERT
     """Expert tables of flat rooms: next_state (T, A) global indices, visible (T, C),
     offsets, counts (N,) -> dist (T, C) int16, expert_action (T, C) int8.
 
-    Rooms go through scenes.expert.expert_tables `chunk` at a time, each padded to
+    Rooms go through expert.expert_tables `chunk` at a time, each padded to
     pad_to (default: the largest room) states that lead to themselves and see nothing,
     so every call has one shape (one compile) and memory stays bounded."""
     next_state, visible = np.asarray(next_state), np.asarray(visible)

@@ -34,11 +34,12 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from orgnav_jax.safe_write import check_output_dir
-from orgnav_jax.scenes.builder import STORE_DTYPE, build
-from orgnav_jax.scenes.features import decode_appearance, decode_global
-from orgnav_jax.scenes.presets import ScenePreset, get_preset
-from orgnav_jax.scenes.sceneset import SceneSet
-from orgnav_jax.scenes.storage import is_scene_set, save
+from orgnav_jax.scenes.sceneset.assemble import STORE_DTYPE
+from orgnav_jax.scenes.sceneset.features import decode_appearance, decode_global
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
+from orgnav_jax.scenes.sceneset.storage import is_scene_set, save
+from orgnav_jax.scenes.synthetic.builder import build
+from orgnav_jax.scenes.synthetic.presets import ScenePreset, get_preset
 
 CHUNK = 512  # states decoded per jitted call (fixed shape: one compile per width)
 BASES = ("global_basis", "appearance_basis", "appearance_proto")

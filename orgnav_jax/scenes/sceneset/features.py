@@ -2,7 +2,7 @@
 
 Synthetic scenes store small 16-bit codes (see global_view.py, detector.py) and fixed
 projections; imported offline data stores the features themselves (bases are None),
-float16 or int8 with a per-channel scale (scenes.quantize): value = int8 * scale.
+float16 or int8 with a per-channel scale (quantize.py): value = int8 * scale.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from orgnav_jax.scenes.sceneset import SceneSet
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
 
 def _dequantize(x: jax.Array, scale) -> jax.Array:

@@ -16,7 +16,7 @@ import numpy as np
 from orgnav_jax.constants import (
     CATEGORY_INDEX, FLOORPLAN_OFFSET, GRID_SIZE, ROOM_TYPES,
 )
-from orgnav_jax.scenes.catalog import (
+from orgnav_jax.scenes.synthetic.catalog import (
     ANCHOR_PROBABILITY, ANCHORS, FURNITURE, FURNITURE_INDEX, OBJECTS,
 )
 

@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from orgnav_jax import constants
 from orgnav_jax.constants import (
     CAMERA_HEIGHT, DONE, GRID_SIZE, HORIZONS, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS,
     NUM_HEADINGS, ROTATE_LEFT, ROTATE_RIGHT, ROTATION_STEP, VISIBILITY_DISTANCE,
 )
 
 STATES_PER_CELL = NUM_HEADINGS * len(HORIZONS)  # 16
-# (di, dj) grid step of MoveAhead for headings 0, 45, ..., 315 degrees.
-HEADING_STEP = np.array([(1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1)])
+HEADING_STEP = np.array(constants.HEADING_STEP)  # (8, 2) (di, dj) of MoveAhead per heading
 LOS_STEP = 0.05  # metres between line-of-sight samples
 
 

@@ -29,7 +29,8 @@ import numpy as np
 
 from orgnav_jax.errors import field_error, is_int, is_number, read_field, read_object, read_str
 from orgnav_jax.safe_write import check_output_dir
-from orgnav_jax.scenes.sceneset import FORMAT_NAME, FORMAT_VERSION, SceneSet
+from orgnav_jax.scenes.sceneset.fields import FORMAT_NAME, FORMAT_VERSION
+from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
 META_FILE = "meta.json"
 _OPTIONAL = ("appearance_proto", "appearance_basis", "global_basis", "global_scale",
@@ -99,7 +100,7 @@ def save(scenes: SceneSet, path: str | os.PathLike, validate: bool = True, *,
 
     writers: {field: write(file) -> (shape, dtype)} for fields too large to hold in
     memory: each writes its own .npy file (e.g. streamed chunk by chunk, see
-    scenes/raw.py) in place of the value in `scenes`, which validate checks instead.
+    synthetic/raw.py) in place of the value in `scenes`, which validate checks instead.
     """
     path = Path(path)
     if path.is_symlink():
@@ -250,7 +251,7 @@ def read_meta_fields(meta: dict, meta_path) -> tuple[dict, tuple]:
 
 def _from_padded_file(path: Path, arrays: dict, info: tuple) -> SceneSet:
     """A version-1 (padded) set, converted in memory (flat.from_padded), with a warning."""
-    from orgnav_jax.scenes.flat import from_padded
+    from orgnav_jax.scenes.sceneset.flat import from_padded
     valid = arrays.get("state_valid")
     if valid is None or valid.ndim != 2 or valid.dtype != bool:
         raise ValueError(f"{path}: format version {PADDED_VERSION} needs field 'state_valid' "

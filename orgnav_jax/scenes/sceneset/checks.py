@@ -16,7 +16,7 @@ import numpy as np
 from orgnav_jax.constants import (
     ACTIONS, CATEGORIES, DONE, NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES, SPLITS,
 )
-from orgnav_jax.scenes.sceneset import NO_ACTION, SCALE_OF, UNREACHABLE
+from orgnav_jax.scenes.sceneset.fields import NO_ACTION, SCALE_OF, UNREACHABLE
 
 _KINDS = {"b": "bool", "iu": "an integer type", "f": "a float type", "fi": "float or int8"}
 _FIELD_KINDS = {
@@ -224,7 +224,7 @@ def validate_values(scenes, source: str = "SceneSet") -> None:
     - every float field finite (pose, det_box, det_conf, float appearance and
       global_feat, the bases and scales if present), streamed in chunks; scales > 0;
     - dist in 0..UNREACHABLE, expert_action in NO_ACTION..DONE, and the expert tables of
-      scenes/expert.py: dist 0 exactly where the category is visible; Done exactly where
+      expert.py: dist 0 exactly where the category is visible; Done exactly where
       dist is 0; NO_ACTION exactly where dist is UNREACHABLE; elsewhere expert_action is
       a move (0..4, rotations and looks cost 1 like MoveAhead) whose successor has dist
       exactly one less; no move reaches a state more than one closer (dist is the
