@@ -13,9 +13,11 @@ import json
 from pathlib import Path
 from typing import Literal, get_args
 
-from orgnav_jax.training.config import (
-    CONFIG_VERSION, COUNT, INT32_MAX, OLD_FLAGS, OLD_RENAMES, POSITIVE, READABLE_VERSIONS, SEED,
-    Range, _parse_bool, budget_notice, check_ranges, check_types)
+from orgnav_jax.training.config_fields import (
+    CONFIG_VERSION, COUNT, EPISODE_CAP, OLD_RENAMES, POSITIVE, READABLE_VERSIONS, RUN_RANGES,
+    Range, add_field_options, budget_notice, check_ranges, check_types, given_options,
+    run_fields,
+)
 from orgnav_jax.training.run_dir import read_config
 
 Scope = Literal["actor", "trunk", "all"]     # parameters a test-time update changes
@@ -67,7 +69,11 @@ class TestTime:
 
 
 @dataclasses.dataclass(frozen=True)
-class TPNConfig:
+class TPNConfig(run_fields(updates_per_chunk=10, eval_every_chunks=5,
+                           checkpoint_every_chunks=5, run_dir="")):
+    # + the run's bookkeeping, declared in config_fields.run_fields (these defaults;
+    # run_dir "": <base_dir>/tpn): updates_per_chunk, eval_every_chunks,
+    # eval_episodes_per_room_type, checkpoint_every_chunks, keep_checkpoints, seed, run_dir
     base_dir: str = ""                # the trained navigation run (its best-on-val params)
     # the network (models.tpn_net.TPN)
     action_embed: int = 32
@@ -84,13 +90,6 @@ class TPNConfig:
     lr: float = 3e-4
     max_grad_norm: float = 10.0
     total_episodes: int = 40_000
-    updates_per_chunk: int = 10
-    eval_every_chunks: int = 5
-    eval_episodes_per_room_type: int = 50
-    checkpoint_every_chunks: int = 5
-    keep_checkpoints: int = 2
-    seed: int = 0
-    run_dir: str = ""                 # default: <base_dir>/tpn
     # test time (evaluation with --tpn)
     tpn_lr: float = TPN_LR            # one SGD step per update step (chosen on val)
     scope: Scope = "all"                # all (the release's) | trunk (above the encoder) | actor
@@ -149,11 +148,9 @@ FIELDS = {f.name for f in dataclasses.fields(TPNConfig)}
 # The range of every numeric TPNConfig field.
 FIELD_RANGES: dict[str, Range] = {
     **{f: COUNT for f in ("action_embed", "mlp", "top_k", "signature_dim", "num_envs",
-                          "total_episodes", "updates_per_chunk", "eval_every_chunks",
-                          "eval_episodes_per_room_type", "checkpoint_every_chunks",
-                          "keep_checkpoints")},
-    "episode_cap": Range(lo=1, hi=INT32_MAX - 1),
-    "seed": SEED,
+                          "total_episodes")},
+    **RUN_RANGES,
+    "episode_cap": EPISODE_CAP,
     "cosine_threshold": Range(lo=-1, hi=1),
     "lr": POSITIVE, "max_grad_norm": POSITIVE,
     "tpn_lr": Range(lo=0, note="0: no test-time update"),
@@ -184,17 +181,9 @@ TEST_TIME_FIELDS = ("tpn_lr", "scope", "when", "target", "deadlock", "cosine_thr
 def add_tpn_arguments(ap: argparse.ArgumentParser, fields=None) -> None:
     """One --option per TPNConfig field (all, or those named in `fields`); base_dir is
     --base."""
-    group = ap.add_argument_group("TPN config fields")
-    for f in dataclasses.fields(TPNConfig):
-        if fields is not None and f.name not in fields:
-            continue
-        kind = {bool: _parse_bool, int: int, float: float}.get(type(f.default), str)
-        flag = "base" if f.name == "base_dir" else f.name.replace("_", "-")
-        flags = ["--" + flag] + ([OLD_FLAGS[f.name]] if f.name in OLD_FLAGS else [])
-        group.add_argument(*flags, dest="tpn__" + f.name, type=kind, default=None,
-                           metavar=type(f.default).__name__.upper())
+    add_field_options(ap, TPNConfig, "TPN config fields", prefix="tpn__",
+                      flags={"base_dir": "base"}, only=fields)
 
 
 def tpn_overrides_from_args(args: argparse.Namespace) -> dict:
-    return {k[len("tpn__"):]: v for k, v in vars(args).items()
-            if k.startswith("tpn__") and v is not None}
+    return given_options(args, TPNConfig, prefix="tpn__")

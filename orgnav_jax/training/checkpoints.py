@@ -27,7 +27,7 @@ from orgnav_jax.errors import (
     field_error, is_int, is_number, read_field, read_int, read_object, shown,
 )
 from orgnav_jax.models.navmodel import check_feature_widths, feature_widths
-from orgnav_jax.training.config import CONFIG_VERSION, READABLE_VERSIONS
+from orgnav_jax.training.config_fields import CONFIG_VERSION, READABLE_VERSIONS
 
 logging.getLogger("absl").setLevel(logging.ERROR)
 

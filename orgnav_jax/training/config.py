@@ -2,7 +2,8 @@
 
     cfg = get_config("small", num_envs=128)        # a preset with fields replaced
 Every field is a command-line option (`--num-envs 128`, `--model org`); a preset's runs
-go to runs/<preset> unless --run-dir says otherwise.
+go to runs/<preset> unless --run-dir says otherwise. The machinery (version, ranges,
+checks, options) is shared with the TPN's config: training/config_fields.py.
 """
 
 from __future__ import annotations
@@ -10,20 +11,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
-import numbers
 from pathlib import Path
 from typing import Literal, get_args
 
-CONFIG_VERSION = 6   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step;
-                     # 4: devices, dtype (scale-out; same parameters and checkpoints);
-                     # 5: max_steps renamed episode_cap (both stages); 6: the savn fields
-READABLE_VERSIONS = (2, 3, 4, 5, 6)   # configs and checkpoints this version reads
-# Fields renamed since, old name -> new, for the configs of versions before 5 (both stages)
-RENAMED = {"max_steps": "episode_cap"}
-OLD_RENAMES = {v: RENAMED for v in (2, 3, 4)}
-# CLI flags kept under their old names too
-OLD_FLAGS = {"episode_cap": "--max-steps"}
+from orgnav_jax.training.config_fields import (
+    CONFIG_VERSION, COUNT, EPISODE_CAP, FINITE, NON_NEGATIVE, OLD_RENAMES, POSITIVE,
+    READABLE_VERSIONS, RUN_RANGES, SEED, Range, add_field_options, budget_notice,
+    check_ranges, check_types, given_options, run_fields,
+)
+
 # Fields a version-2 config lacks, with the values those runs were trained with.
 V2_DEFAULTS = {"il_norm": "masked_mean", "il_step": "state"}
 # Fields a version-3 (or 2) config lacks, with the values those runs were trained with
@@ -47,109 +43,12 @@ IL_MODES, IL_STEPS, IL_NORMS = get_args(ILMode), get_args(ILStep), get_args(ILNo
 DTYPES = get_args(DType)
 
 
-INT32_MAX = 2 ** 31 - 1
-FLOAT_MAX = 1.7976931348623157e308
-# Integer fields are int32 (the env and the jitted loop count in int32), except the
-# budgets, counted on the host: at most a trillion env steps (episodes).
-BUDGET_MAX = 10 ** 12
-BUDGETS_FIELDS = ("total_env_steps", "total_episodes")
-
-
 @dataclasses.dataclass(frozen=True)
-class Range:
-    """The allowed values of a numeric config field: lo (<= or <) value (<= or <) hi;
-    floats must be finite; `note` explains a special value."""
-    lo: float | None = None
-    hi: float | None = None
-    lo_open: bool = False
-    hi_open: bool = False
-    note: str = ""
-
-    def ok(self, x) -> bool:
-        if isinstance(x, float) and not math.isfinite(x):
-            return False
-        return ((self.lo is None or (x > self.lo if self.lo_open else x >= self.lo))
-                and (self.hi is None or (x < self.hi if self.hi_open else x <= self.hi)))
-
-    def text(self, name: str, integer: bool) -> str:
-        """The range in words: "0 < gamma <= 1", "an integer num_envs >= 1"."""
-        num = lambda x: f"{x:,}" if float(x).is_integer() and abs(x) >= 1e4 else f"{x:g}"
-        if self.lo is not None and self.hi is not None:
-            out = (f"{num(self.lo)} {'<' if self.lo_open else '<='} {name} "
-                   f"{'<' if self.hi_open else '<='} {num(self.hi)}")
-        elif self.lo is not None:
-            out = f"{name} {'>' if self.lo_open else '>='} {num(self.lo)}"
-            out += "" if integer else ", finite"
-        else:
-            out = f"a finite {name}"
-        out = f"an integer {out}" if integer else out
-        return out + (f" ({self.note})" if self.note else "")
-
-
-COUNT = Range(lo=1)                    # counts, widths, budgets
-SEED = Range(lo=0, hi=INT32_MAX)
-POSITIVE = Range(lo=0, lo_open=True)   # finite and > 0
-NON_NEGATIVE = Range(lo=0)             # finite and >= 0
-FINITE = Range()
-
-
-def check_types(cfg, prefix: str) -> None:
-    """Each field holds a value of its declared kind (int, float, bool, str, None); a
-    config read from JSON may not; an integer given for a float field must fit a float.
-    ValueError naming the field otherwise."""
-    for f in dataclasses.fields(cfg):
-        value, kind = getattr(cfg, f.name), type(f.default)
-        if kind is bool:
-            ok = isinstance(value, bool)
-        elif kind is int:
-            ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
-        elif kind is float:
-            ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
-            if ok and isinstance(value, numbers.Integral) and abs(value) > FLOAT_MAX:
-                raise ValueError(f"{prefix} {f.name!r}: an integer of {len(str(value))} "
-                                 "digits, expected a finite number")
-        elif f.default is None:
-            ok = value is None or isinstance(value, str)
-        else:
-            ok = isinstance(value, kind)
-        if not ok:
-            want = {bool: "true or false", int: "an integer", float: "a number",
-                    str: "a string"}.get(kind, "a string or null")
-            raise ValueError(f"{prefix} {f.name!r}: {value!r}, expected {want}")
-
-
-def check_ranges(cfg, ranges: dict[str, Range], prefix: str) -> None:
-    """ValueError for the first field outside its Range: `<prefix> 'gamma': 2.0, expected
-    0 < gamma <= 1`; integers are also int32 (budgets: at most BUDGET_MAX)."""
-    for name, rng in ranges.items():
-        value = getattr(cfg, name)
-        integer = isinstance(value, numbers.Integral)
-        if not rng.ok(value):
-            raise ValueError(f"{prefix} {name!r}: {value!r}, expected "
-                             f"{rng.text(name, integer)}")
-        limit = BUDGET_MAX if name in BUDGETS_FIELDS else INT32_MAX
-        if integer and not -limit - 1 <= value <= limit:
-            raise ValueError(f"{prefix} {name!r}: {value!r}, expected "
-                             f"{rng.text(name, integer)} and at most {limit:,}"
-                             + (" (int32)" if limit == INT32_MAX else ""))
-
-
-def budget_notice(field: str, total: int, per_update: int, updates_per_chunk: int,
-                  per_update_text: str) -> str | None:
-    """The note when a budget (`field` = total) is not whole chunks of updates_per_chunk
-    updates of per_update env steps (episodes): a run does num_updates = max(1, total //
-    per_update) updates, rounded up to whole chunks (training/driver.py). None if equal."""
-    updates = max(1, total // per_update)
-    run = math.ceil(updates / updates_per_chunk) * updates_per_chunk * per_update
-    if run == total:
-        return None
-    return (f"note: {field} {total:,} rounds {'up' if run > total else 'down'} to {run:,} "
-            f"(whole chunks of {updates_per_chunk} update{'s' * (updates_per_chunk != 1)} "
-            f"x {per_update_text})")
-
-
-@dataclasses.dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
+                             checkpoint_every_chunks=4, run_dir="runs/small")):
+    # + the run's bookkeeping, declared in config_fields.run_fields (these defaults; every
+    # preset's run_dir is runs/<preset>): updates_per_chunk, eval_every_chunks,
+    # eval_episodes_per_room_type, checkpoint_every_chunks, keep_checkpoints, seed, run_dir
     # data
     scene_preset: str = "small"       # scene preset built and cached (orgnav_jax.scenes)
     scenes_dir: str | None = None     # or a saved / imported SceneSet directory
@@ -182,14 +81,6 @@ class TrainConfig:
     entropy_coef: float = 0.01
     value_coef: float = 0.5
     total_env_steps: int = 3_000_000
-    updates_per_chunk: int = 25       # jitted updates between host-side logging
-    # evaluation and checkpoints
-    eval_every_chunks: int = 8
-    eval_episodes_per_room_type: int = 50   # val episodes during training (test: 250)
-    checkpoint_every_chunks: int = 4
-    keep_checkpoints: int = 2
-    seed: int = 0
-    run_dir: str = "runs/small"       # every preset: runs/<preset name>
     # scale-out (docs/scale_out.md)
     devices: int = 0                  # devices per process the env axis is sharded over
                                       # (0: all local devices); a resume may change it
@@ -254,16 +145,14 @@ class TrainConfig:
 
 # The range of every numeric TrainConfig field (dropout: [0, 1), checked apart).
 FIELD_RANGES: dict[str, Range] = {
-    "scene_seed": SEED, "seed": SEED,
+    **RUN_RANGES, "scene_seed": SEED,
     "devices": Range(lo=0, note="0: all local devices"),
     **{f: COUNT for f in ("glob_channels", "action_embed", "fuse_channels", "hidden",
                           "lstm_layers", "num_envs", "rollout_len", "total_env_steps",
-                          "updates_per_chunk", "eval_every_chunks",
-                          "eval_episodes_per_room_type", "checkpoint_every_chunks",
-                          "keep_checkpoints", "savn_steps", "savn_inner_steps")},
+                          "savn_steps", "savn_inner_steps")},
     # the env counts steps in int32 and keeps a trail of episode_cap + 1 states per env
     # (the memory check, training/memory.py, bounds it far lower)
-    "episode_cap": Range(lo=1, hi=INT32_MAX - 1),
+    "episode_cap": EPISODE_CAP,
     "lr": POSITIVE, "adam_eps": POSITIVE, "max_grad_norm": POSITIVE,
     "gamma": Range(lo=0, hi=1, lo_open=True),
     "gae_lambda": Range(lo=0, hi=1),
@@ -358,27 +247,10 @@ def load_config(run_dir: str | Path) -> TrainConfig:
                        OLD_RENAMES)
 
 
-def _parse_bool(text: str) -> bool:
-    if text.lower() in ("1", "true", "yes"):
-        return True
-    if text.lower() in ("0", "false", "no"):
-        return False
-    raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
-
-
 def add_config_arguments(ap: argparse.ArgumentParser) -> None:
     """One --option per TrainConfig field (default: the preset's value)."""
-    group = ap.add_argument_group("config fields (override the preset)")
-    for f in dataclasses.fields(TrainConfig):
-        kind = {int: int, float: float, bool: _parse_bool}.get(
-            type(f.default), str)
-        flags = ["--" + f.name.replace("_", "-")] + ([OLD_FLAGS[f.name]] if f.name in OLD_FLAGS
-                                                     else [])
-        group.add_argument(*flags, dest=f.name, type=kind,
-                           default=None, metavar=type(f.default).__name__.upper()
-                           if f.default is not None else "STR")
+    add_field_options(ap, TrainConfig, "config fields (override the preset)")
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict:
-    names = {f.name for f in dataclasses.fields(TrainConfig)}
-    return {k: v for k, v in vars(args).items() if k in names and v is not None}
+    return given_options(args, TrainConfig)
