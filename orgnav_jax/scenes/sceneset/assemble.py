@@ -3,8 +3,9 @@
 A scene source (scenes/synthetic: the generator; scenes/offline: the authors' data; or a
 new one) delivers each room as a `SourceRoom` of per-room arrays and calls `assemble`,
 which lays the rooms out on the flat state axis, computes the expert tables and the
-episode targets and returns the SceneSet (numpy arrays). Saving, loading and validating it is
-storage.py's and checks.py's; nothing else builds a SceneSet from parts.
+episode targets and returns the SceneSet (numpy arrays). Nothing else makes a SceneSet
+from rooms: storage.py saves and loads one (flat.from_padded converts the old padded
+files), checks.py validates one.
 
     scenes = assemble([SourceRoom(...), ...], info=FORMAT_INFO + (("preset", "mine"),))
 """
