@@ -253,23 +253,20 @@ def test_user_errors_of_train_are_one_line(tmp_path, tiny_dir, cli_error):
 
 def test_a_non_finite_loss_is_a_one_line_error_that_keeps_the_checkpoints(
         tmp_path, tiny_dir, monkeypatch, cli_error):
-    real = loop.make_train_chunk
+    real = loop.cached_train_chunk      # wrapped, not cleared: other tests keep its compile
 
-    def poisoned(cfg, model, optimizer, **kw):
-        chunk_fn, calls = real(cfg, model, optimizer, **kw), [0]
+    def poisoned(*args, **kw):
+        optimizer, chunk_fn = real(*args, **kw)
+        calls = [0]
 
         def wrapped(runner, scenes):
             calls[0] += 1
             runner, metrics = chunk_fn(runner, scenes)
             return runner, dict(metrics, loss_finite=np.bool_(calls[0] < 3))
-        return wrapped
+        return optimizer, wrapped
 
-    monkeypatch.setattr(loop, "make_train_chunk", poisoned)
-    loop.cached_train_chunk.cache_clear()
-    try:
-        msg = cli_error(train_cli.main, argv_of(tiny_dir, tmp_path / "run"))
-    finally:
-        loop.cached_train_chunk.cache_clear()
+    monkeypatch.setattr(loop, "cached_train_chunk", poisoned)
+    msg = cli_error(train_cli.main, argv_of(tiny_dir, tmp_path / "run"))
     assert "non-finite loss in chunk 3" in msg
     assert sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir()) == \
         [str(CHUNK), str(2 * CHUNK)]

@@ -89,10 +89,11 @@ def test_interrupted_save_leaves_the_previous_checkpoint_loadable(tmp_path, tiny
 
 def test_nan_loss_stops_with_a_clear_message_and_keeps_the_last_checkpoint(
         tmp_path, tiny_dir, monkeypatch):
-    real = loop.make_train_chunk
+    real = loop.cached_train_chunk      # wrapped, not cleared: other tests keep its compile
 
-    def poisoned(cfg, model, optimizer, **kw):
-        chunk_fn, calls = real(cfg, model, optimizer, **kw), [0]
+    def poisoned(*args, **kw):
+        optimizer, chunk_fn = real(*args, **kw)
+        calls = [0]
 
         def wrapped(runner, scenes):
             calls[0] += 1
@@ -101,17 +102,13 @@ def test_nan_loss_stops_with_a_clear_message_and_keeps_the_last_checkpoint(
                 bad = jax.tree_util.tree_map(lambda x: x * jnp.nan, runner.params)
                 return runner.replace(params=bad), dict(metrics, loss_finite=jnp.bool_(False))
             return runner, metrics
-        return wrapped
+        return optimizer, wrapped
 
-    monkeypatch.setattr(loop, "make_train_chunk", poisoned)
-    loop.cached_train_chunk.cache_clear()
+    monkeypatch.setattr(loop, "cached_train_chunk", poisoned)
     cfg = small_cfg(tiny_dir, tmp_path / "run")
-    try:
-        with pytest.raises(NonFiniteLoss, match="non-finite loss in chunk 3.*last good "
-                                                     "checkpoint"):
-            loop.train(cfg, progress=False)
-    finally:
-        loop.cached_train_chunk.cache_clear()
+    with pytest.raises(NonFiniteLoss, match="non-finite loss in chunk 3.*last good "
+                                                 "checkpoint"):
+        loop.train(cfg, progress=False)
     ckpt = RunCheckpoints(tmp_path / "run")
     assert ckpt.latest_step() == 512
     _, params, _ = load_run_policy(tmp_path / "run", best=False)
