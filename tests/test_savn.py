@@ -71,15 +71,16 @@ def test_one_inner_step_is_an_sgd_step_on_the_learned_loss(rooms):
     carry = jax.tree_util.tree_map(lambda x: x[0], model.initial_carry(1))
     row = lambda f: jax.tree_util.tree_map(lambda x: x[0], f)
     f = row(fast)
-    out = savn.inner_row(model, learned, shared, f.dense, f.ux, f.uh, f.v, carry, inputs,
-                         meta["ll"], lr, 0, jnp.bool_(True))
+    out = jax.jit(lambda *a: savn.inner_row(model, learned, shared, *a, meta["ll"], lr, 0,
+                                            jnp.bool_(True)))(
+        f.dense, f.ux, f.uh, f.v, carry, inputs)
     new = savn.Fast(*[jax.tree_util.tree_map(lambda x: x[None], t) for t in out[4:]])
     got = jax.tree_util.tree_map(lambda x: x[0], savn.materialize(nav, new))
 
     def ll_of(variables):                    # explicit: the learned loss of full weights
         _, (logits, h) = reference_segment(model, variables, model.initial_carry(1), inputs)
         return learned.apply(meta["ll"], savn.learned_input(logits, h))
-    g = jax.grad(ll_of)(nav)
+    g = jax.jit(jax.grad(ll_of))(nav)
     want = jax.tree_util.tree_map(lambda p, d: p - lr * d, nav, g)
     moved = 0
     for a, b, p in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want),
@@ -88,7 +89,8 @@ def test_one_inner_step_is_an_sgd_step_on_the_learned_loss(rooms):
         moved += int(not np.allclose(a, p))
     assert moved >= 8
     # the segment's own forward pass is the plain model's
-    _, (logits, _) = reference_segment(model, nav, model.initial_carry(1), inputs)
+    _, (logits, _) = jax.jit(lambda v, x: reference_segment(
+        model, v, model.initial_carry(1), x))(nav, inputs)
     np.testing.assert_allclose(out[0], logits, rtol=1e-5, atol=1e-6)
 
 
@@ -146,9 +148,9 @@ def test_fast_weights_never_leak_across_rows_or_episodes(rooms):
     fast = savn.init_fast(nav, 3, 2 * k)
     inputs = segment_inputs(rooms, 3, k)
     carry = model.initial_carry(3)
-    v_inner = jax.vmap(lambda d, ux, uh, v, c, x, on: savn.inner_row(
+    v_inner = jax.jit(jax.vmap(lambda d, ux, uh, v, c, x, on: savn.inner_row(
         model, learned, shared, d, ux, uh, v, c, x, meta["ll"], 0.5, 0, on),
-        in_axes=(0, 0, 0, 0, 0, 0, 0))
+        in_axes=(0, 0, 0, 0, 0, 0, 0)))
     on = jnp.array([True, False, True])
     out = v_inner(fast.dense, fast.ux, fast.uh, fast.v, carry, inputs, on)
     new = savn.Fast(*out[4:])

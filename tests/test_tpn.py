@@ -73,11 +73,14 @@ def test_one_sgd_step_lowers_the_cross_entropy_of_the_target(loaded):
     for scope in ("actor", "trunk", "all"):
         scoped, rest = split_scope(params, scope)
         shared, per_env = split_step(model, scope)
-        features = jax.tree_util.tree_map(lambda x: x[0], shared(params, inputs, carry))
-        logits, _, _ = per_env(scoped, rest, features)
+        per_env_jit = jax.jit(per_env)
+        features = jax.tree_util.tree_map(lambda x: x[0],
+                                          jax.jit(shared)(params, inputs, carry))
+        logits, _, _ = per_env_jit(scoped, rest, features)
         target = jnp.argmin(logits)                    # the least likely action
-        stepped = sgd_step(per_env, scoped, rest, features, target, 1e-2)
-        after, _, _ = per_env(stepped, rest, features)
+        stepped = jax.jit(lambda s, r, f, t: sgd_step(per_env, s, r, f, t, 1e-2))(
+            scoped, rest, features, target)
+        after, _, _ = per_env_jit(stepped, rest, features)
         assert float(policy_ce(after, target)) < float(policy_ce(logits, target)) - 1e-4, scope
         # with unchanged weights, one environment's step equals the batched model's
         full_logits = model.apply(params, inputs, carry)[0][0]
@@ -98,12 +101,13 @@ def test_with_zero_lr_the_tpn_policy_acts_as_the_base_model(loaded, tpn_run):
 
 
 def run_policy_steps(policy, pparams, test, obs, fresh_pattern):
-    """Drive policy.act on fixed observations; fresh_pattern[t] (B,) bool."""
+    """Drive policy.act (jitted, as evaluation runs it) on fixed observations;
+    fresh_pattern[t] (B,) bool."""
     carry = policy.init(obs.state.shape[0], pparams)
+    act = jax.jit(policy.act)
     carries = []
     for t, fresh in enumerate(fresh_pattern):
-        _, carry = policy.act(pparams, carry, obs, jax.random.PRNGKey(t), test,
-                              jnp.asarray(fresh))
+        _, carry = act(pparams, carry, obs, jax.random.PRNGKey(t), test, jnp.asarray(fresh))
         carries.append(carry)
     return carries
 
@@ -146,12 +150,12 @@ def test_stage2_gradients_reach_the_tpn_parameters_only(loaded, base_run, tmp_pa
     tpn = build_tpn(nav_cfg, cfg)
     tpn_params = init_tpn_params(tpn, nav_cfg, jax.random.PRNGKey(0))
 
-    def objective(base_params, tpn_params):
+    def objective(base_params, tpn_params, test):
         batch = collect(model, base_params, cfg, test, jax.random.PRNGKey(1), 16)
         batch = batch.replace(deadlock=jnp.ones_like(batch.deadlock))  # every step counts
         return tpn_loss(tpn_params, tpn, batch)[0]
 
-    g_base, g_tpn = jax.grad(objective, argnums=(0, 1))(params, tpn_params)
+    g_base, g_tpn = jax.jit(jax.grad(objective, argnums=(0, 1)))(params, tpn_params, test)
     assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree_util.tree_leaves(g_base))
     norms = [float(jnp.abs(g).max()) for g in jax.tree_util.tree_leaves(g_tpn)]
     assert all(np.isfinite(norms)) and sum(n > 0 for n in norms) >= len(norms) - 2
