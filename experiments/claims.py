@@ -52,6 +52,10 @@ def claims(lr: str) -> list[tuple[str, str, str, int]]:
         ("ORG + IL > ORG", "org_il", "org", 1),
         ("Baseline + TPN > Baseline", tpn("baseline"), "baseline", 1),
         ("full model > ORG + IL (w/o TPN)", tpn("org_il"), "org_il", 1),
+        # Table 1's meta-learning rows (issue 25: SAVN adapts by a learned loss)
+        ("D-SAVN > SAVN", "dsavn", "savn", 1),
+        ("D-SAVN > Baseline", "dsavn", "baseline", 1),
+        ("full model > D-SAVN", tpn("org_il"), "dsavn", 1),
         # Table 2: ablations of the full model
         ("full model > ORG + TPN (w/o IL)", tpn("org_il"), tpn("org"), 1),
         ("full model > IL + TPN (w/o ORG)", tpn("org_il"), tpn("il"), 1),

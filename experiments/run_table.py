@@ -162,13 +162,13 @@ def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
 def train_row_population(row: str, seeds: list[int], out: Path, overrides: dict) -> None:
     """Train the seeds of navigation row `row` that lack test results in one program
     (OUT/runs/<row>-s<seed>); seeds whose runs were started separately are left to
-    run_one (a population resumes only runs at a common checkpoint)."""
+    run_one (a population resumes only runs at a common checkpoint), as are SAVN rows."""
     todo = [s for s in seeds
             if not (out / "runs" / f"{row}-s{s}" / "test_results.json").exists()]
     started = [is_run_dir(out / "runs" / f"{row}-s{s}") for s in todo]
-    if len(todo) < 2 or (any(started) and not all(started)):
-        return
     cfg = get_config(row, **{**overrides, "run_dir": str(out / "runs" / row)})
+    if len(todo) < 2 or (any(started) and not all(started)) or cfg.savn:
+        return                          # SAVN trains one seed per program (docs/savn.md)
     api.train_seeds(cfg, todo, resume=all(started), progress=sys.stderr.isatty())
     for s in todo:
         record_provenance(out / "runs" / f"{row}-s{s}",
