@@ -10,15 +10,15 @@ import shutil
 import tempfile
 
 # One on-disk compile cache for the whole session, set before jax is imported: the same
-# small programs compiled in another test's process (xdist workers, CLI subprocesses,
-# which inherit the environment) are read back instead of compiled again. A cache the
-# caller set is used as is and kept; the session's own is removed at the end.
+# small programs compiled in another test's process (the CLI and multi-device
+# subprocesses, which inherit the environment) are read back instead of compiled again.
+# A cache the caller set is used as is and kept; the session's own is removed at the end.
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="orgnav-test-jit-")
     os.environ["ORGNAV_TEST_OWNS_JIT_CACHE"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")
-# a size bound turns on jax's file lock around cache reads and writes (workers share it)
+# a size bound turns on jax's file lock around cache reads and writes (processes share it)
 os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(8 << 30))
 
 import numpy as np  # noqa: E402
