@@ -18,8 +18,13 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["ORGNAV_TEST_OWNS_JIT_CACHE"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")
-# a size bound turns on jax's file lock around cache reads and writes (processes share it)
-os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(8 << 30))
+# a size bound turns on jax's file lock around cache reads and writes (processes share
+# it); jax needs filelock (a dev dependency) for it, and warns on every compile without
+try:
+    import filelock  # noqa: F401
+    os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(8 << 30))
+except ImportError:
+    pass
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
