@@ -20,14 +20,21 @@ def source_rooms(s, callable_features: bool = False) -> list[SourceRoom]:
         rows = slice(o, o + k)
         feats = {f: np.asarray(getattr(s, f)[rows]) for f in FEATURE_FIELDS}
         if callable_features:
-            feats = (lambda views, feats=feats: [views[f].__setitem__(..., feats[f])
-                                                 for f in FEATURE_FIELDS])
+            feats = writer(feats)
         rooms.append(SourceRoom(
             scene_id=int(s.scene_id[n]), room_type=int(s.room_type[n]), split=int(s.split[n]),
             next_state=np.asarray(s.next_state[rows]) - o, pose=np.asarray(s.pose[rows]),
             visible=np.asarray(s.visible[rows]), present=np.asarray(s.present[n]),
             features=feats))
     return rooms
+
+
+def writer(feats: dict):
+    """The features as a source that writes them into the views assemble hands it."""
+    def write(views: dict) -> None:
+        for f in FEATURE_FIELDS:
+            views[f][...] = feats[f]
+    return write
 
 
 def assert_same_set(a, b):
