@@ -3,6 +3,7 @@ and (slow) a learning test on unseen rooms."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -128,6 +129,25 @@ def test_train_chunk_compiles_once(tmp_path, tiny_dir, extra):
     assert chunk._cache_size() == 1
     assert int(runner.update) == 3 * cfg.updates_per_chunk
     assert all(np.isfinite(x).all() for x in leaves(runner.params))
+
+
+def test_where_the_rooms_come_from_is_not_in_the_compile_key(tmp_path, tiny_dir):
+    """Two copies of a scene set (another directory, or the preset instead of a directory)
+    give one cached program; the program still takes each set's rooms as its input."""
+    import shutil
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_dir, copy)
+    a = small_cfg(tiny_dir, tmp_path / "a")
+    b = small_cfg(copy, tmp_path / "b", scene_seed=5)
+    c = dataclasses.replace(a, scenes_dir=None, scene_preset="tiny")
+    assert loop.compute_config(a) == loop.compute_config(b) == loop.compute_config(c)
+    train = scenes_mod.load(tiny_dir).split_view("train").to_device()
+    model = loop.build_model(a, train)
+    assert loop.cached_train_chunk(loop.compute_config(a), model) is \
+        loop.cached_train_chunk(loop.compute_config(b), model)
+    # what the chunk reads is still in the key
+    assert loop.compute_config(a) != loop.compute_config(small_cfg(tiny_dir, tmp_path / "a",
+                                                                   num_envs=8))
 
 
 def test_bad_config_and_checkpoints_are_clear_errors(tmp_path, tiny_dir, cli_error):

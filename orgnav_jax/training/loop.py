@@ -37,10 +37,13 @@ from orgnav_jax.training.update import init_runner, make_optimizer, make_train_c
 
 
 # fields the jitted chunk does not read (compile_cache.py: runs differing only in these
-# share one compiled program)
+# share one compiled program). The scene fields only say where the rooms come from: the
+# rooms are the chunk's input (their shapes key jit's own cache) and their feature widths
+# are in the model, so two copies of a set, or two sets of one shape, share the program.
 HOST_ONLY_FIELDS = ("run_dir", "total_env_steps", "eval_every_chunks",
                     "eval_episodes_per_room_type", "checkpoint_every_chunks",
-                    "keep_checkpoints", "seed", "devices")   # devices: the mesh is a key
+                    "keep_checkpoints", "seed", "devices",   # devices: the mesh is a key
+                    "scene_preset", "scenes_dir", "scene_seed")
 
 
 def compute_config(cfg: TrainConfig) -> TrainConfig:
