@@ -81,9 +81,12 @@ def results_path(out: Path, row: str, seed: int | str) -> Path:
     return run_dir / "tpn" / f"test_{variant}.json" if plus else run_dir / "test_results.json"
 
 
-def provenance() -> dict:
-    """What made a run: the code version, the machine, the time."""
-    top = Path(__file__).resolve().parents[1]
+def provenance(top: Path | None = None) -> dict:
+    """What made a run: the code version (of the checkout `top`, default this one), the
+    machine, the time. "uncommitted_changes": tracked code under orgnav_jax/ or
+    experiments/ differs from the commit; the tables' own files (experiments/results/,
+    which a running campaign rewrites) do not count."""
+    top = top or Path(__file__).resolve().parents[1]
     git = lambda *a: subprocess.run(["git", *a], cwd=top, capture_output=True,
                                     text=True).stdout.strip()
     cpu = next((line.split(":", 1)[1].strip() for line in
@@ -93,7 +96,8 @@ def provenance() -> dict:
     import jax
     return {"code": git("rev-parse", "HEAD") or "unknown",
             "uncommitted_changes": bool(git("status", "--porcelain", "--untracked-files=no",
-                                            "--", "orgnav_jax", "experiments")),
+                                            "--", "orgnav_jax", "experiments",
+                                            ":(exclude)experiments/results")),
             "cpu": cpu, "jax": jax.__version__, "python": platform.python_version(),
             "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
 

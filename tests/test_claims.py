@@ -141,6 +141,28 @@ def test_run_table_spec_is_checked(tmp_path):
             run_table.read_spec(bad)
 
 
+def test_provenance_counts_code_changes_not_the_tables_own_files(tmp_path):
+    """A run's provenance says "uncommitted_changes" for edited code, not for the result
+    files a running campaign rewrites (experiments/results/)."""
+    import subprocess
+    sys.path.insert(0, str(EXPERIMENTS))
+    import run_table
+    git = lambda *a: subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t",
+                                     *a], cwd=tmp_path, check=True, capture_output=True)
+    for rel in ("orgnav_jax/x.py", "experiments/run.py", "experiments/results/t/table.md"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("a\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "c")
+    assert run_table.provenance(tmp_path)["uncommitted_changes"] is False
+    (tmp_path / "experiments/results/t/table.md").write_text("b\n")
+    assert run_table.provenance(tmp_path)["uncommitted_changes"] is False
+    (tmp_path / "experiments/run.py").write_text("b\n")
+    p = run_table.provenance(tmp_path)
+    assert p["uncommitted_changes"] is True and len(p["code"]) == 40
+
+
 def test_committed_tables_agree_with_their_runs(claims):
     """`claims.py --check` on every committed table: its results.json, table.md and
     claims.md are what its runs' evidence files give."""
