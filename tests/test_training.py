@@ -132,8 +132,8 @@ def test_train_chunk_compiles_once(tmp_path, tiny_dir, extra):
 
 
 def test_where_the_rooms_come_from_is_not_in_the_compile_key(tmp_path, tiny_dir):
-    """Two copies of a scene set (another directory, or the preset instead of a directory)
-    give one cached program; the program still takes each set's rooms as its input."""
+    """Two copies of a scene set (another directory, another scene seed field, or the
+    preset instead of a directory) give one cached program (the rooms are its input)."""
     import shutil
     copy = tmp_path / "copy"
     shutil.copytree(tiny_dir, copy)
