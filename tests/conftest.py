@@ -1,35 +1,19 @@
 """Fixtures every test file shares: the "tiny" benchmark (16 rooms), built at most once
 per session and saved once (tiny_dir), sample generated rooms, and cli_error (a CLI's
 one-line error and exit code 2).
+
+No on-disk jit cache is set up: on 2 cores, looking every compile up in one and writing it
+there cost more than the few programs a test's subprocess could read back (docs/testing.md).
+In one process jit's own cache serves a repeat; a cache the caller sets
+(JAX_COMPILATION_CACHE_DIR) is used as is.
 """
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
+import numpy as np
+import pytest
 
-# One on-disk compile cache for the whole session, set before jax is imported: the same
-# small programs compiled in another test's process (the CLI and multi-device
-# subprocesses, which inherit the environment) are read back instead of compiled again.
-# A cache the caller set is used as is and kept; the session's own is removed at the end.
-if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
-    os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="orgnav-test-jit-")
-    os.environ["ORGNAV_TEST_OWNS_JIT_CACHE"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
-os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")
-# a size bound turns on jax's file lock around cache reads and writes (processes share
-# it); jax needs filelock (a dev dependency) for it, and warns on every compile without
-try:
-    import filelock  # noqa: F401
-    os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(8 << 30))
-except ImportError:
-    pass
-
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from orgnav_jax import constants as K  # noqa: E402
+from orgnav_jax import constants as K
 from orgnav_jax import scenes
 from orgnav_jax.scenes.synthetic import catalog, layout
 
@@ -110,10 +94,3 @@ def cli_error(capsys):
         assert lines and lines[-1].startswith("error: "), err[-2000:]
         return lines[-1]
     return call
-
-
-def pytest_unconfigure(config):
-    """The session's own compile cache goes when the main process ends (not a worker's)."""
-    owned = os.environ.get("ORGNAV_TEST_OWNS_JIT_CACHE")
-    if owned and not hasattr(config, "workerinput"):
-        shutil.rmtree(owned, ignore_errors=True)

@@ -27,19 +27,25 @@ def save_leaves(path, tree):
     np.savez(path, *[np.asarray(x) for x in jax.tree_util.tree_leaves(tree)])
 
 
+# Every task trains this one computation (IL and dropout on), so the process compiles
+# three chunks in all (one device, two devices, a population on two devices), each once
+# (the trainer's own cache: loop.cached_train_chunk).
+KW = dict(il="deadlock", dropout=0.25)
+
+
 def task_chunk(out, scenes_dir):
     """3 chunks on one device and on a 2-device mesh from the same runner."""
     from orgnav_jax import scenes as S
     from orgnav_jax.models import build_model
-    from orgnav_jax.training import scale
-    from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
-    cfg = small_cfg(scenes_dir, out, il="deadlock", dropout=0.25)
+    from orgnav_jax.training import loop, scale
+    from orgnav_jax.training.update import init_runner
+    cfg = small_cfg(scenes_dir, out, **KW)
     train = S.load(scenes_dir).split_view("train").to_device()
-    model, opt = build_model(cfg, train), make_optimizer(cfg)
-    runner = init_runner(cfg, model, opt, train, jax.random.PRNGKey(0))
-    one = make_train_chunk(cfg, model, opt)
+    model = build_model(cfg, train)
     mesh = scale.make_mesh(2)
-    two = make_train_chunk(cfg, model, opt, mesh=mesh)
+    opt, one = loop.cached_train_chunk(loop.compute_config(cfg), model)
+    _, two = loop.cached_train_chunk(loop.compute_config(cfg), model, mesh)
+    runner = init_runner(cfg, model, opt, train, jax.random.PRNGKey(0))
     r1, r2 = runner, scale.place(runner, scale.runner_shardings(runner, mesh))
     s2 = scale.place(train, scale.replicated(train, mesh))
     losses = []
@@ -65,19 +71,19 @@ def task_runs(out, scenes_dir):
     """Full and killed-then-resumed runs on 2 devices; a 1-device run resumed on 2."""
     from orgnav_jax.training import loop
     res = {}
-    full2 = loop.train(small_cfg(scenes_dir, f"{out}/full2", devices=2), progress=False)
+    full2 = loop.train(small_cfg(scenes_dir, f"{out}/full2", devices=2, **KW), progress=False)
     save_leaves(f"{out}/full2.npz", full2["runner"])
-    cfg = small_cfg(scenes_dir, f"{out}/killed2", devices=2)
+    cfg = small_cfg(scenes_dir, f"{out}/killed2", devices=2, **KW)
     assert loop.train(cfg, progress=False, stop_after_chunks=2)["chunks"] == 2
     resumed = loop.train(cfg, resume=True, progress=False)
     res["resumed2_chunks"] = resumed["chunks"]
     save_leaves(f"{out}/resumed2.npz", resumed["runner"])
-    full1 = loop.train(small_cfg(scenes_dir, f"{out}/full1", devices=1), progress=False)
+    full1 = loop.train(small_cfg(scenes_dir, f"{out}/full1", devices=1, **KW), progress=False)
     save_leaves(f"{out}/full1.npz", full1["runner"])
-    cfg1 = small_cfg(scenes_dir, f"{out}/one_then_two", devices=1)
+    cfg1 = small_cfg(scenes_dir, f"{out}/one_then_two", devices=1, **KW)
     loop.train(cfg1, progress=False, stop_after_chunks=2)
-    moved = loop.train(small_cfg(scenes_dir, f"{out}/one_then_two", devices=2), resume=True,
-                       progress=False)
+    moved = loop.train(small_cfg(scenes_dir, f"{out}/one_then_two", devices=2, **KW),
+                       resume=True, progress=False)
     res["moved_chunks"] = moved["chunks"]
     res["moved_fresh_devices"] = len(moved["runner"].fresh.sharding.device_set)
     save_leaves(f"{out}/one_then_two.npz", moved["runner"])
@@ -90,10 +96,9 @@ def task_seeds(out, scenes_dir):
     same seeds as separate 1-device runs."""
     from orgnav_jax.training import loop
     res = {}
-    kw = dict(il="deadlock", dropout=0.25)
-    pop = loop.train_seeds(small_cfg(scenes_dir, f"{out}/pop", devices=2, **kw), [0, 1],
+    pop = loop.train_seeds(small_cfg(scenes_dir, f"{out}/pop", devices=2, **KW), [0, 1],
                            progress=False)
-    cfg = small_cfg(scenes_dir, f"{out}/killed", devices=2, **kw)
+    cfg = small_cfg(scenes_dir, f"{out}/killed", devices=2, **KW)
     first = loop.train_seeds(cfg, [0, 1], progress=False, stop_after_chunks=2)
     res["killed_chunks"] = [r["chunks"] for r in first]
     resumed = loop.train_seeds(cfg, [0, 1], resume=True, progress=False)
@@ -102,7 +107,7 @@ def task_seeds(out, scenes_dir):
         save_leaves(f"{out}/pop-s{seed}.npz", p["runner"])
         save_leaves(f"{out}/resumed-s{seed}.npz", r["runner"])
         one = loop.train(small_cfg(scenes_dir, f"{out}/one-s{seed}", devices=1, seed=seed,
-                                   **kw), progress=False)
+                                   **KW), progress=False)
         save_leaves(f"{out}/one-s{seed}.npz", one["runner"])
     res["fresh_devices"] = len(pop[0]["runner"].fresh.sharding.device_set)
     with open(f"{out}/result.json", "w") as f:

@@ -98,16 +98,13 @@ def test_meta_gradient_matches_finite_differences(rooms):
     """Two segments: an inner step on the first, an outer loss on the second's logits and
     values; the gradient w.r.t. the initial parameters and the learned loss (second order,
     float64) against central differences along a random direction."""
+    cfg, model, learned, meta32 = setup(rooms, hidden=4)
+    k = cfg.savn_steps
+    seg32 = segment_inputs(rooms, 1, 2 * k, seed=3)
     with jax.enable_x64(True):
-        cfg, model, learned, meta = setup(rooms, hidden=4)
-        meta = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64), meta)
-        k = cfg.savn_steps
-        seg = jax.tree_util.tree_map(lambda x: x[0].astype(jnp.float64),
-                                     segment_inputs(rooms, 1, 2 * k, seed=3))
-        first = jax.tree_util.tree_map(lambda x: x[:k], seg)
-        second = jax.tree_util.tree_map(lambda x: x[k:], seg)
-
-        def objective(m, first_order=False):
+        def objective(m, seg, first_order=False):
+            first = jax.tree_util.tree_map(lambda x: x[:k], seg)
+            second = jax.tree_util.tree_map(lambda x: x[k:], seg)
             shared, _ = savn.split_params(m["nav"])
             f = jax.tree_util.tree_map(lambda x: x[0], savn.init_fast(m["nav"], 1, k))
             carry = jax.tree_util.tree_map(lambda x: x[0].astype(jnp.float64),
@@ -120,25 +117,33 @@ def test_meta_gradient_matches_finite_differences(rooms):
             return jnp.sum(jnp.sin(jnp.arange(6.0) + 1) * jax.nn.log_softmax(logits)) + \
                 jnp.sum(values ** 2)
 
-        # jitted: one compile each instead of op-by-op dispatch in float64
-        grad_of = jax.jit(jax.grad(objective), static_argnums=1)
-        objective = jax.jit(objective)
-        grad = grad_of(meta, False)
-        leaves, tree = jax.tree_util.tree_flatten(meta)
-        keys = jax.random.split(jax.random.PRNGKey(7), len(leaves))
-        direction = tree.unflatten([jax.random.normal(kk, x.shape, jnp.float64)
-                                    for kk, x in zip(keys, leaves)])
-        eps = 1e-5
-        shift = lambda s: jax.tree_util.tree_map(lambda x, d: x + s * d, meta, direction)
-        fd = (objective(shift(eps)) - objective(shift(-eps))) / (2 * eps)
-        analytic = sum(jnp.vdot(g, d) for g, d in zip(jax.tree_util.tree_leaves(grad),
-                                                      jax.tree_util.tree_leaves(direction)))
+        @jax.jit              # everything in one program: one compile, no op-by-op float64
+        def check(meta32, seg32):
+            f64 = lambda t: jax.tree_util.tree_map(
+                lambda x: x.astype(jnp.float64) if jnp.issubdtype(x.dtype, jnp.floating)
+                else x, t)
+            meta, seg = f64(meta32), jax.tree_util.tree_map(lambda x: x[0], f64(seg32))
+            leaves, tree = jax.tree_util.tree_flatten(meta)
+            keys = jax.random.split(jax.random.PRNGKey(7), len(leaves))
+            direction = tree.unflatten([jax.random.normal(kk, x.shape, jnp.float64)
+                                        for kk, x in zip(keys, leaves)])
+            eps = 1e-5
+            shift = lambda s: jax.tree_util.tree_map(lambda x, d: x + s * d, meta, direction)
+            fd = (objective(shift(eps), seg) - objective(shift(-eps), seg)) / (2 * eps)
+            second = jax.grad(objective)(meta, seg, False)
+            first = jax.grad(objective)(meta, seg, True)
+            analytic = sum(jnp.vdot(g, d) for g, d in zip(
+                jax.tree_util.tree_leaves(second), jax.tree_util.tree_leaves(direction)))
+            ll_norm = lambda g: sum(jnp.abs(x).sum() for x in jax.tree_util.tree_leaves(
+                g["ll"]))
+            return analytic, fd, ll_norm(second), ll_norm(first)
+
+        analytic, fd, ll_second, ll_first = check(meta32, seg32)
+        assert analytic.dtype == jnp.float64
         np.testing.assert_allclose(analytic, fd, rtol=1e-6)
         # the learned loss gets a meta-gradient (second order), none with first order
-        ll_norm = lambda g: sum(float(jnp.abs(x).sum()) for x in jax.tree_util.tree_leaves(
-            g["ll"]))
-        assert ll_norm(grad) > 0
-        assert ll_norm(grad_of(meta, True)) == 0
+        assert float(ll_second) > 0
+        assert float(ll_first) == 0
 
 
 def test_fast_weights_never_leak_across_rows_or_episodes(rooms):

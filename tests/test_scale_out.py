@@ -289,12 +289,16 @@ def free_port() -> int:
 
 def two_processes(args, tmp_path, timeout: int = 600) -> list[subprocess.CompletedProcess]:
     """`python -m orgnav_jax.train ARGS` as processes 0 and 1 of a jax.distributed job on
-    this machine (one CPU device each, gloo collectives) -> both results."""
+    this machine (one CPU device each, gloo collectives) -> both results. The processes
+    share an on-disk jit cache under tmp_path (programs that took over a second to
+    compile), so a second job of the same computation reads its programs back."""
     port = free_port()
+    env = dict(subprocess_env(devices=1), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    env.setdefault("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "jit-cache"))
     procs = [subprocess.Popen(
         [sys.executable, "-m", "orgnav_jax.train", *map(str, args), "--coordinator",
          f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)],
-        env=subprocess_env(devices=1), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True, cwd=tmp_path) for i in (0, 1)]
     results = []
     try:
@@ -327,6 +331,7 @@ def test_two_processes_train_the_tiny_preset_and_write_one_set_of_logs(
     small = ["--preset", "tiny", "--scenes-dir", tiny_dir, "--num-envs", 16, "--rollout-len",
              8, "--updates-per-chunk", 2, "--eval-every-chunks", 2,
              "--eval-episodes-per-room-type", 4, "--checkpoint-every-chunks", 1,
+             "--il", "deadlock", "--dropout", 0.25,        # the worker's computation
              "--run-dir", run, "--no-test", "--quiet"]
     first = two_processes(small + ["--total-env-steps", 512], tmp_path)
     assert "run " in first[0].stdout and '"chunks": 2' in first[0].stdout
