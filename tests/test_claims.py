@@ -164,9 +164,31 @@ def test_provenance_counts_code_changes_not_the_tables_own_files(tmp_path):
 
 
 def test_committed_tables_agree_with_their_runs(claims):
-    """`claims.py --check` on every committed table: its results.json, table.md and
-    claims.md are what its runs' evidence files give."""
-    tables = sorted(p.parent for p in (EXPERIMENTS / "results").glob("table_*/spec.json"))
-    assert tables, "no committed table with a spec.json"
+    """`claims.py --check` on every committed run_table.py output (the tables and the
+    knob's points): its results.json, table.md and claims.md are what its runs'
+    evidence files give."""
+    tables = sorted(p.parent for p in (EXPERIMENTS / "results").glob("*/spec.json"))
+    assert any(t.name.startswith("table_") for t in tables), "no committed table"
     for table in tables:
         assert claims.check(table) == [], table
+
+
+def test_the_knob_tables_agree_with_their_runs(claims, tmp_path):
+    """experiments/knob.py --check: knob.md is what the knob's runs give (success from
+    their test results, adjacency from the matrices in their adjacency.json); a tampered
+    matrix is named."""
+    spec = importlib.util.spec_from_file_location("knob", EXPERIMENTS / "knob.py")
+    knob = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(knob)
+    assert knob.main(["--check"]) == 0
+    rows = knob.point_rows()
+    measured = [r for r in rows if r["stats"]]
+    assert measured and all(len(r["stats"]["differences"]) == len(r["seeds"]) for r in measured)
+    adj = next(Path(p) for p in sorted((EXPERIMENTS / "results").glob(
+        "*/runs/org-s*/adjacency.json")))
+    doc = json.loads(adj.read_text())
+    doc["A"][0][1] += 1.0
+    bad = tmp_path / "adjacency.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="adjacency.json: the stored report differs"):
+        knob.read_adjacency(bad)

@@ -1,0 +1,186 @@
+"""Issue 24's co-occurrence knob: does ORG's gain over the Baseline grow with how often
+the generator puts an anchored object by its anchor (P)?
+
+    python experiments/knob.py --adjacency DIR/runs/org-s0 ...   # from checkpoints
+    python experiments/knob.py                  # writes experiments/results/knob/
+    python experiments/knob.py --check          # recompute knob.md; exit 1 on a difference
+
+The points (POINTS): P = 0 and P = 1 are run_table.py outputs of their own
+(experiments/tables/knob_p0.json, knob_p1.json: Baseline and ORG, seeds 0-2, 5 M env
+steps, on `scenes build --anchor-probability P` sets); P = 0.85, the default, is the 5 M
+table's Baseline and ORG rows on the same seeds. Per point: test success of both rows,
+the paired difference ORG - Baseline per seed with its 95% t interval and verdict
+(claims.statistics), and the learned adjacency's anchor statistic of every ORG run that
+has an adjacency.json beside its files.
+
+--adjacency RUN... writes RUN/adjacency.json from the run's best-on-val checkpoint: the
+learned 22 x 22 matrix A and plots.adjacency.anchor_pair_report(A) (anchor-pair p-value,
+anchor_auc: the chance that an anchor pair's value exceeds another same-room-type
+pair's, 0.5 = chance). The matrix is kept so that --check recomputes the report from it
+without the checkpoint (checkpoints stay out of git).
+
+Writes OUT/knob.md (the tables) and OUT/knob.png (the gain against P, with the
+intervals and each seed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import claims  # noqa: E402  (sibling script: the paired statistics, reading a table dir)
+
+RESULTS = Path(__file__).resolve().parent / "results"
+OUT = RESULTS / "knob"
+# (P, the table directory of its Baseline and ORG runs, the directory whose ORG runs
+# carry the adjacency.json of that P)
+POINTS = ((0.0, "knob_p0", "knob_p0"), (0.85, "table_5m", "rerun_org_5m"),
+          (1.0, "knob_p1", "knob_p1"))
+SEEDS = ("0", "1", "2")            # the knob's seeds; at 0.85 the table's seeds 0-2
+
+
+def write_adjacency(run_dir: Path) -> dict:
+    """RUN/adjacency.json: the best-on-val checkpoint's learned adjacency and its report."""
+    from orgnav_jax.plots import adjacency
+    A, graph = adjacency.run_adjacency(run_dir, best=True)
+    if graph != "org":
+        raise ValueError(f"{run_dir}: a {graph} model has no learned adjacency")
+    doc = {"graph": graph, "A": np.asarray(A, np.float64).round(6).tolist()}
+    doc["report"] = adjacency.anchor_pair_report(np.asarray(doc["A"]))
+    (run_dir / "adjacency.json").write_text(json.dumps(doc, indent=1))
+    return doc
+
+
+def read_adjacency(path: Path) -> dict:
+    """An adjacency.json whose stored report must equal the one its matrix gives."""
+    from orgnav_jax.plots import adjacency
+    doc = json.loads(path.read_text())
+    again = adjacency.anchor_pair_report(np.asarray(doc["A"]))
+    if json.dumps(again, sort_keys=True) != json.dumps(doc["report"], sort_keys=True):
+        raise ValueError(f"{path}: the stored report differs from what its matrix gives")
+    return doc["report"]
+
+
+def point_rows(results: Path = RESULTS) -> list[dict]:
+    """Per P: success of both rows, the paired ORG - Baseline statistics, adjacency."""
+    rows = []
+    for p, table, adj_dir in POINTS:
+        entry = {"p": p, "table": table, "seeds": [], "stats": None, "adjacency": {}}
+        if (results / table / "spec.json").exists():
+            _, res, _ = claims.read_table_dir(results / table)
+            seeds = [s for s in SEEDS if s in res.get("org", {}) and
+                     s in res.get("baseline", {})]
+            if seeds:
+                entry["seeds"] = seeds
+                entry["baseline"] = [100 * res["baseline"][s]["success"] for s in seeds]
+                entry["org"] = [100 * res["org"][s]["success"] for s in seeds]
+                d = np.array(entry["org"]) - np.array(entry["baseline"])
+                entry["stats"] = claims.statistics(d, 1)
+        for s in SEEDS:
+            path = results / adj_dir / "runs" / f"org-s{s}" / "adjacency.json"
+            if path.exists():
+                entry["adjacency"][s] = read_adjacency(path)
+        rows.append(entry)
+    return rows
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["ORG - Baseline, test success (points), paired by seed:", "",
+             "| P (anchor probability) | runs | seeds | Baseline | ORG | "
+             "ORG - Baseline per seed | mean [95% t interval] | verdict |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        st = r["stats"]
+        if st is None:
+            lines.append(f"| {r['p']:g} | {r['table']} | - | | | | not measured yet | |")
+            continue
+        lines.append(
+            f"| {r['p']:g} | {r['table']} | {','.join(r['seeds'])} | "
+            f"{np.mean(r['baseline']):.1f} | {np.mean(r['org']):.1f} | "
+            f"{', '.join(f'{x:+.1f}' for x in st['differences'])} | {st['mean']:+.1f} "
+            f"{claims.interval_text(st['interval'])} | {st['verdict']} |")
+    lines += ["", "The learned adjacency of the ORG runs (best-on-val checkpoint): AUC of the "
+              "anchor pairs against the other same-room-type pairs (0.5 = chance) and the "
+              "anchor pairs' p-value (plots.adjacency.anchor_pair_report):", "",
+              "| P | runs | seed | anchor AUC | anchor pairs above the mean | p-value |",
+              "|---|---|---|---|---|---|"]
+    for p, (_, _, adj_dir), r in zip([r["p"] for r in rows], POINTS, rows):
+        if not r["adjacency"]:
+            lines.append(f"| {p:g} | {adj_dir} | - | not measured yet | | |")
+        for s, rep in r["adjacency"].items():
+            a = rep["anchor"]
+            lines.append(f"| {p:g} | {adj_dir} | {s} | {rep['anchor_auc']:.2f} | "
+                         f"{a['higher']} of {a['n']} | {a['p_value']:.3f} |")
+        if len(r["adjacency"]) > 1:
+            aucs = [rep["anchor_auc"] for rep in r["adjacency"].values()]
+            lines.append(f"| {p:g} | {adj_dir} | **mean** | **{np.mean(aucs):.2f}** | | |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], path: Path) -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    done = [r for r in rows if r["stats"]]
+    for r in done:
+        ax.scatter([r["p"]] * len(r["stats"]["differences"]), r["stats"]["differences"],
+                   color="0.6", s=14, zorder=2)
+    ps = [r["p"] for r in done]
+    means = [r["stats"]["mean"] for r in done]
+    err = np.array([[m - r["stats"]["interval"][0], r["stats"]["interval"][1] - m]
+                    for m, r in zip(means, done)]).T if done else None
+    if done:
+        ax.errorbar(ps, means, yerr=err, fmt="o-", color="C0", capsize=4, zorder=3,
+                    label="mean, 95% t interval")
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_xlabel("anchor probability P (0.85: the benchmark's default)")
+    ax.set_ylabel("ORG - Baseline, test success (points)")
+    ax.set_title("ORG's gain against co-occurrence (5 M env steps)", fontsize=10)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--adjacency", nargs="+", metavar="RUN", default=None,
+                    help="write RUN/adjacency.json from each ORG run's checkpoint")
+    ap.add_argument("--check", action="store_true",
+                    help="recompute knob.md from the runs' files; exit 1 on a difference")
+    ap.add_argument("--results", default=str(RESULTS), help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.adjacency:
+        for run in map(Path, args.adjacency):
+            rep = write_adjacency(run)["report"]
+            print(f"{run}/adjacency.json: anchor AUC {rep['anchor_auc']:.2f}, "
+                  f"p {rep['anchor']['p_value']:.3f}")
+        return 0
+    results = Path(args.results)
+    text = markdown(point_rows(results))
+    out = results / "knob"
+    if args.check:
+        path = out / "knob.md"
+        if not path.exists() or path.read_text() != text:
+            print(f"check failed: {path} differs from what the runs' files give",
+                  file=sys.stderr)
+            return 1
+        print(f"{path} agrees with the runs' files")
+        return 0
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "knob.md").write_text(text)
+    plot(point_rows(results), out / "knob.png")
+    print(text)
+    print(f"wrote {out / 'knob.md'} and {out / 'knob.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
