@@ -22,6 +22,7 @@ import optax
 from flax import struct
 
 from orgnav_jax import env
+from orgnav_jax.compile_cache import compiled_once, computation_of
 from orgnav_jax.errors import choose
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
@@ -127,6 +128,28 @@ def make_tpn_chunk(cfg: TPNConfig, model, tpn, optimizer):
     return chunk
 
 
+# The fields stage 2's programs do not read (the host loop's bookkeeping and the
+# test-time update's fields): runs that differ only in them share one compiled chunk,
+# val collection and val loss (compile_cache.py).
+HOST_ONLY_FIELDS = ("run_dir", "base_dir", "total_episodes", "eval_every_chunks",
+                    "eval_episodes_per_room_type", "checkpoint_every_chunks",
+                    "keep_checkpoints", "seed", "tpn_lr", "scope", "when", "target",
+                    "reset_every", "tpn_train_mode")
+
+
+@compiled_once
+def cached_programs(cfg: TPNConfig, model, tpn):
+    """(optimizer, chunk, collect_val, val_metrics) of a stage-2 computation, jitted once
+    per process for equal (cfg without HOST_ONLY_FIELDS, model, tpn):
+    collect_val(base_params, scenes, key, num) -> EpisodeBatch (num static);
+    val_metrics(tpn_params, batch) -> tpn_loss's aux."""
+    optimizer = make_optimizer(cfg)
+    collect_val = jax.jit(lambda base_params, scenes, key, num: collect(
+        model, base_params, cfg, scenes, key, num), static_argnums=3)
+    val_metrics = jax.jit(lambda params, batch: tpn_loss(params, tpn, batch)[1])
+    return optimizer, make_tpn_chunk(cfg, model, tpn, optimizer), collect_val, val_metrics
+
+
 def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
               stop_after_chunks: int | None = None) -> dict:
     """Train (or resume) the TPN of cfg.run_dir on its frozen base -> summary dict.
@@ -146,16 +169,15 @@ def _train_tpn(cfg: TPNConfig, run_dir: Path, model, base_params, nav_cfg, scene
     from orgnav_jax.training.runs import device_splits
     train_scenes, val_scenes = device_splits(scenes, "train", "val")   # preflight's set
     tpn = build_tpn(nav_cfg, cfg.network)
-    optimizer = make_optimizer(cfg)
+    optimizer, chunk_fn, collect_val, val_metrics = cached_programs(
+        computation_of(cfg, HOST_ONLY_FIELDS), model, tpn)
     k_init, k_run = jax.random.split(jax.random.PRNGKey(cfg.seed))
     params = init_tpn_params(tpn, nav_cfg, k_init)
     runner = TPNRunner(params, optimizer.init(params), k_run, jnp.int32(0))
-    chunk_fn = make_tpn_chunk(cfg, model, tpn, optimizer)
     # the base is frozen: the val episodes are collected once (same for every seed)
-    val_batch = jax.jit(collect, static_argnums=(0, 2, 5))(
-        model, base_params, cfg, val_scenes, jax.random.PRNGKey(2 ** 20),
-        4 * cfg.eval_episodes_per_room_type)
-    val_fn = jax.jit(lambda p: tpn_loss(p, tpn, val_batch)[1])
+    val_batch = collect_val(base_params, val_scenes, jax.random.PRNGKey(2 ** 20),
+                            4 * cfg.eval_episodes_per_room_type)
+    val_fn = lambda p: val_metrics(p, val_batch)
     floats = lambda m: {k: float(v) for k, v in jax.device_get(m).items()}
     stage = Stage(
         name="train TPN", unit="ep", step_name="episodes", rate_key="episodes_per_s",
