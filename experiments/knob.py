@@ -70,7 +70,8 @@ def point_rows(results: Path = RESULTS) -> list[dict]:
     """Per P: success of both rows, the paired ORG - Baseline statistics, adjacency."""
     rows = []
     for p, table, adj_dir in POINTS:
-        entry = {"p": p, "table": table, "seeds": [], "stats": None, "adjacency": {}}
+        entry = {"p": p, "table": table, "adj_dir": adj_dir, "seeds": [], "stats": None,
+                 "adjacency": {}}
         if (results / table / "spec.json").exists():
             _, res, _ = claims.read_table_dir(results / table)
             seeds = [s for s in SEEDS if s in res.get("org", {}) and
@@ -109,16 +110,17 @@ def markdown(rows: list[dict]) -> str:
               "anchor pairs' p-value (plots.adjacency.anchor_pair_report):", "",
               "| P | runs | seed | anchor AUC | anchor pairs above the mean | p-value |",
               "|---|---|---|---|---|---|"]
-    for p, (_, _, adj_dir), r in zip([r["p"] for r in rows], POINTS, rows):
+    for r in rows:
+        head = f"| {r['p']:g} | {r['adj_dir']} |"
         if not r["adjacency"]:
-            lines.append(f"| {p:g} | {adj_dir} | - | not measured yet | | |")
+            lines.append(f"{head} - | not measured yet | | |")
         for s, rep in r["adjacency"].items():
             a = rep["anchor"]
-            lines.append(f"| {p:g} | {adj_dir} | {s} | {rep['anchor_auc']:.2f} | "
+            lines.append(f"{head} {s} | {rep['anchor_auc']:.2f} | "
                          f"{a['higher']} of {a['n']} | {a['p_value']:.3f} |")
         if len(r["adjacency"]) > 1:
             aucs = [rep["anchor_auc"] for rep in r["adjacency"].values()]
-            lines.append(f"| {p:g} | {adj_dir} | **mean** | **{np.mean(aucs):.2f}** | | |")
+            lines.append(f"{head} **mean** | **{np.mean(aucs):.2f}** | | |")
     return "\n".join(lines) + "\n"
 
 
@@ -131,18 +133,16 @@ def plot(rows: list[dict], path: Path) -> Path:
     for r in done:
         ax.scatter([r["p"]] * len(r["stats"]["differences"]), r["stats"]["differences"],
                    color="0.6", s=14, zorder=2)
-    ps = [r["p"] for r in done]
-    means = [r["stats"]["mean"] for r in done]
-    err = np.array([[m - r["stats"]["interval"][0], r["stats"]["interval"][1] - m]
-                    for m, r in zip(means, done)]).T if done else None
     if done:
-        ax.errorbar(ps, means, yerr=err, fmt="o-", color="C0", capsize=4, zorder=3,
-                    label="mean, 95% t interval")
+        means = np.array([r["stats"]["mean"] for r in done])
+        ivs = np.array([r["stats"]["interval"] for r in done])          # (points, 2)
+        ax.errorbar([r["p"] for r in done], means, yerr=[means - ivs[:, 0], ivs[:, 1] - means],
+                    fmt="o-", color="C0", capsize=4, zorder=3, label="mean, 95% t interval")
+        ax.legend(fontsize=8, loc="upper left")
     ax.axhline(0, color="k", lw=0.8)
     ax.set_xlabel("anchor probability P (0.85: the benchmark's default)")
     ax.set_ylabel("ORG - Baseline, test success (points)")
     ax.set_title("ORG's gain against co-occurrence (5 M env steps)", fontsize=10)
-    ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -155,7 +155,6 @@ def main(argv: list[str] | None = None) -> int:
                     help="write RUN/adjacency.json from each ORG run's checkpoint")
     ap.add_argument("--check", action="store_true",
                     help="recompute knob.md from the runs' files; exit 1 on a difference")
-    ap.add_argument("--results", default=str(RESULTS), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.adjacency:
         for run in map(Path, args.adjacency):
@@ -163,22 +162,21 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{run}/adjacency.json: anchor AUC {rep['anchor_auc']:.2f}, "
                   f"p {rep['anchor']['p_value']:.3f}")
         return 0
-    results = Path(args.results)
-    text = markdown(point_rows(results))
-    out = results / "knob"
+    rows = point_rows()
+    text = markdown(rows)
     if args.check:
-        path = out / "knob.md"
+        path = OUT / "knob.md"
         if not path.exists() or path.read_text() != text:
             print(f"check failed: {path} differs from what the runs' files give",
                   file=sys.stderr)
             return 1
         print(f"{path} agrees with the runs' files")
         return 0
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "knob.md").write_text(text)
-    plot(point_rows(results), out / "knob.png")
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "knob.md").write_text(text)
+    plot(rows, OUT / "knob.png")
     print(text)
-    print(f"wrote {out / 'knob.md'} and {out / 'knob.png'}")
+    print(f"wrote {OUT / 'knob.md'} and {OUT / 'knob.png'}")
     return 0
 
 

@@ -289,16 +289,12 @@ def free_port() -> int:
 
 def two_processes(args, tmp_path, timeout: int = 600) -> list[subprocess.CompletedProcess]:
     """`python -m orgnav_jax.train ARGS` as processes 0 and 1 of a jax.distributed job on
-    this machine (one CPU device each, gloo collectives) -> both results. The processes
-    share an on-disk jit cache under tmp_path (every program), so a second job of the
-    same computation reads its programs back (a few seconds of its ~50 s)."""
+    this machine (one CPU device each, gloo collectives) -> both results."""
     port = free_port()
-    env = dict(subprocess_env(devices=1), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
-    env.setdefault("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "jit-cache"))
     procs = [subprocess.Popen(
         [sys.executable, "-m", "orgnav_jax.train", *map(str, args), "--coordinator",
          f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        env=subprocess_env(devices=1), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True, cwd=tmp_path) for i in (0, 1)]
     results = []
     try:

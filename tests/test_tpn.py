@@ -184,6 +184,26 @@ def test_stage2_kill_and_resume_equals_an_uninterrupted_run(base_run, tmp_path):
     assert full["best_val"] == resumed["best_val"]
 
 
+def test_stage2_programs_are_shared_by_runs_of_one_computation(loaded, base_run, tmp_path):
+    """Runs that differ only in bookkeeping or test-time fields get the same jitted stage-2
+    programs (the chunk compiles once for both); a computation field gives new ones."""
+    from orgnav_jax.compile_cache import computation_of
+    from orgnav_jax.tpn import stage2
+    model, _, nav_cfg, _ = loaded
+    a = tpn_cfg(base_run, tmp_path / "a")
+    b = tpn_cfg(base_run, tmp_path / "b", seed=3, total_episodes=96, tpn_lr=1e-3,
+                when="all", eval_every_chunks=2)
+    key = lambda c: (computation_of(c, stage2.HOST_ONLY_FIELDS), model,
+                     build_tpn(nav_cfg, c.network))
+    assert stage2.cached_programs(*key(a)) is stage2.cached_programs(*key(b))
+    other = tpn_cfg(base_run, tmp_path / "c", episode_cap=12)
+    assert stage2.cached_programs(*key(other)) is not stage2.cached_programs(*key(a))
+    chunk = stage2.cached_programs(*key(a))[1]
+    train_tpn(a, progress=False)
+    train_tpn(b, progress=False)
+    assert chunk._cache_size() == 1
+
+
 def test_cli_trains_and_evaluates_with_tpn(base_run, tmp_path, capsys):
     from orgnav_jax import train as train_cli
     run_dir = tmp_path / "cli-tpn"

@@ -173,7 +173,10 @@ def _train_tpn(cfg: TPNConfig, run_dir: Path, model, base_params, nav_cfg, scene
         computation_of(cfg, HOST_ONLY_FIELDS), model, tpn)
     k_init, k_run = jax.random.split(jax.random.PRNGKey(cfg.seed))
     params = init_tpn_params(tpn, nav_cfg, k_init)
-    runner = TPNRunner(params, optimizer.init(params), k_run, jnp.int32(0))
+    # committed to the device like the chunk's outputs, so the first chunk and the rest
+    # are one compiled program (uncommitted inputs compiled it a second time)
+    runner = jax.device_put(TPNRunner(params, optimizer.init(params), k_run, jnp.int32(0)),
+                            jax.local_devices()[0])
     # the base is frozen: the val episodes are collected once (same for every seed)
     val_batch = collect_val(base_params, val_scenes, jax.random.PRNGKey(2 ** 20),
                             4 * cfg.eval_episodes_per_room_type)
