@@ -219,6 +219,27 @@ def test_the_fallback_prints_its_notice_and_nothing_else(tmp_path, half_run):
     assert len(lines) == 1 and lines[0].startswith("warning: checkpoint "), done.stderr[:3000]
 
 
+def test_the_asyncio_echo_of_a_dead_read_task_is_dropped_and_other_records_kept():
+    """A task of orbax's reads may be collected after the fallback is over; asyncio then
+    logs "Task exception was never retrieved" (seen once in CI). The logger's filter drops
+    that record and keeps every other one."""
+    import logging
+    from orgnav_jax.training import checkpoints
+
+    def record(msg, exc=None):
+        info = (type(exc), exc, exc.__traceback__) if exc else None
+        return logging.LogRecord("asyncio", logging.ERROR, __file__, 1, msg, None, info)
+    echo = record("Task exception was never retrieved\nfuture: <Task finished coro=<"
+                  "async_deserialize() done, defined at /site-packages/orbax/checkpoint/"
+                  "_src/serialization/serialization.py:394>>", Exception("reading array"))
+    other = record("Task exception was never retrieved\nfuture: <Task coro=<mine()>>",
+                   RuntimeError("a user's own task"))
+    assert checkpoints._not_a_read_echo(echo) is False
+    assert checkpoints._not_a_read_echo(other) is True
+    checkpoints._drop_read_echoes()
+    assert checkpoints._not_a_read_echo in logging.getLogger("asyncio").filters
+
+
 def test_no_readable_checkpoint_is_an_error_that_moves_nothing(tmp_path, tiny_dir, half_run,
                                                                cli_error):
     run = copy_of(half_run, tmp_path / "run")

@@ -172,8 +172,8 @@ def _is_read_echo(exc: BaseException | None, tb, obj=None) -> bool:
 
 def _drop_read_echoes() -> None:
     """Process-wide, once: unraisable and thread exceptions from orbax's reads (and the
-    closed event loop they report) are dropped; every other one reaches the hooks that
-    were installed before."""
+    closed event loop they report), and the asyncio logger's records of its dead tasks,
+    are dropped; every other one reaches the hooks and handlers installed before."""
     if getattr(sys.unraisablehook, "_orgnav_read_echoes", False):
         return
     unraisable, thread_hook = sys.unraisablehook, threading.excepthook
@@ -188,6 +188,14 @@ def _drop_read_echoes() -> None:
 
     on_unraisable._orgnav_read_echoes = True
     sys.unraisablehook, threading.excepthook = on_unraisable, on_thread
+    logging.getLogger("asyncio").addFilter(_not_a_read_echo)
+
+
+def _not_a_read_echo(record: logging.LogRecord) -> bool:
+    """The asyncio logger's filter: a task of orbax's reads that died with the damaged
+    checkpoint and is collected later ("Task exception was never retrieved") is dropped."""
+    exc, tb = record.exc_info[1:] if record.exc_info else (None, None)
+    return not _is_read_echo(exc, tb, record.getMessage())
 
 
 class CheckpointUnreadable(ValueError):
