@@ -2,7 +2,7 @@
 seconds XLA spent compiling in this process (jax.monitoring's backend compile events;
 subprocesses a test starts are wall time only).
 
-    PYTHONPATH=tests python -m pytest -q -p compile_profile [--compile-profile-json F]
+    PYTHONPATH=tests python -m pytest -q -n 0 -p compile_profile [--compile-profile-json F]
 
 prints the 25 longest tests and the totals at the end; the JSON (test id -> [wall s,
 compile s, trace and lowering s, compiles]) keeps every test. docs/testing.md has the

@@ -1,6 +1,6 @@
 """Fixtures every test file shares: the "tiny" benchmark (16 rooms), built at most once
-per session and saved once (tiny_dir), sample generated rooms, and cli_error (a CLI's
-one-line error and exit code 2).
+per session (per xdist worker) and saved once (tiny_dir), sample generated rooms, and
+cli_error (a CLI's one-line error and exit code 2); the number of xdist workers.
 
 No on-disk jit cache is set up: on 2 cores, looking every compile up in one and writing it
 there cost more than the few programs a test's subprocess could read back (docs/testing.md).
@@ -10,12 +10,22 @@ In one process jit's own cache serves a repeat; a cache the caller sets
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
 from orgnav_jax import constants as K
 from orgnav_jax import scenes
 from orgnav_jax.scenes.synthetic import catalog, layout
+
+
+def pytest_xdist_auto_num_workers(config) -> int:
+    """`-n auto` (pyproject's addopts): one worker per core this process may use, at most
+    4 (each worker holds its own jax, ~1-4 GB, and compiles what it runs)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(cores or 1, 4))
+
 
 # A few floorplans of every room type (train numbering), for single-room tests.
 SAMPLE_FLOORPLANS: tuple[int, ...] = (1, 2, 3, 201, 202, 203, 301, 302, 303, 401, 402, 403)
