@@ -184,6 +184,9 @@ def test_the_knob_tables_agree_with_their_runs(claims, tmp_path):
     rows = knob.point_rows()
     measured = [r for r in rows if r["stats"]]
     assert measured and all(len(r["stats"]["differences"]) == len(r["seeds"]) for r in measured)
+    table_runs = knob.table_adjacency()          # every ORG and ORG + IL run of the table
+    assert {row: sorted(r) for row, r in table_runs.items()} == \
+        {"org": list("01234"), "org_il": list("01234")}
     adj = next(iter(sorted((EXPERIMENTS / "results").glob(
         "*/runs/org-s*/adjacency.json"))))
     doc = json.loads(adj.read_text())
@@ -192,3 +195,24 @@ def test_the_knob_tables_agree_with_their_runs(claims, tmp_path):
     bad.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="adjacency.json: the stored report differs"):
         knob.read_adjacency(bad)
+
+
+def test_tpn_budget_gain_is_paired_by_episode_and_tabled(tmp_path):
+    """experiments/tpn_budget.py: the gain over the base alone is the mean per-episode
+    success difference with its normal 95% interval; the table shows the chosen lr."""
+    spec = importlib.util.spec_from_file_location("tpn_budget", EXPERIMENTS / "tpn_budget.py")
+    budget = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(budget)
+    rng = np.random.default_rng(0)
+    alone = rng.random(400) < 0.6
+    better = alone | (rng.random(400) < 0.2)             # never worse, sometimes better
+    a, b = fake_results(better, rng), fake_results(alone, rng)
+    mean, low, high = budget.paired_gain(a, b)
+    d = 100 * (better.astype(float) - alone)
+    assert mean == pytest.approx(d.mean()) and low < mean < high and low > 0
+    assert high - low == pytest.approx(2 * 1.96 * d.std(ddof=1) / np.sqrt(400))
+    summary = {"lrs": [1e-3, 1e-2], "bases": {"baseline": {"alone": 0.6, "budgets": {
+        "40000": {"val_ce": 1.0, "val_accuracy": 0.5, "success": {"0.001": 0.7, "0.01": 0.65},
+                  "chosen": 1e-3, "gain": (mean, low, high)}}}}}
+    line = budget.table(summary).splitlines()[2]
+    assert line.startswith("| baseline | 40,000 | 1.000 | 50.0 | 60.0 | 70.0 | 65.0 | 0.001 |")
