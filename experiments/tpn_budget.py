@@ -10,7 +10,8 @@ at each test-time learning rate (and the base alone once), on the same val episo
 The test split is never touched. Everything resumes: rerun the same command after an
 interruption (finished runs and evaluations are skipped).
 
-OUT/budget.json holds every val result's overall metrics and OUT/budget.md the table:
+OUT/budget.json holds the summary and OUT/budget.md the table (`--check` recomputes
+both from the run files, which are committed: config, metrics and val results):
 per base and budget, the stage-2 val cross-entropy and accuracy, val success at each lr,
 the lr chosen on val, and its gain over the base alone with a 95% interval paired by val
 episode (normal approximation; the lr was chosen on the same episodes, so the interval of
@@ -99,7 +100,54 @@ def table(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> None:
+def budget_entry(base_dir: Path, budget: int, lrs, alone: dict) -> dict:
+    """One (base, budget) cell of the summary, from the TPN run's files."""
+    tpn_dir = base_dir / f"tpn-{budget}"
+    res = {f"{lr:g}": json.loads((tpn_dir / f"val_tpn@{lr:g}.json").read_text())
+           for lr in lrs}
+    chosen = max(res, key=lambda k: (res[k]["overall"]["success"], res[k]["overall"]["spl"]))
+    v = last_val(tpn_dir)
+    return {"val_ce": v.get("ce", float("nan")),
+            "val_accuracy": v.get("accuracy", float("nan")),
+            "success": {k: r["overall"]["success"] for k, r in res.items()},
+            "spl": {k: r["overall"]["spl"] for k, r in res.items()},
+            "chosen": float(chosen), "gain": list(paired_gain(res[chosen], alone))}
+
+
+def summarize(out: Path, seed: int, lrs, done: dict[str, list[int]], config: dict) -> dict:
+    """The summary of the finished (base, budgets) in `done`, read from the run files."""
+    summary = {"seed": seed, "lrs": list(lrs), "config": config, "bases": {}}
+    for base, budgets in done.items():
+        base_dir = out / "runs" / f"{base}-s{seed}"
+        alone = json.loads((base_dir / "val_results.json").read_text())
+        summary["bases"][base] = {"alone": alone["overall"]["success"], "budgets": {
+            str(b): budget_entry(base_dir, b, lrs, alone) for b in budgets}}
+    return summary
+
+
+def write_summary(out: Path, summary: dict) -> str:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "budget.json").write_text(json.dumps(summary, indent=1))
+    text = table(summary)
+    (out / "budget.md").write_text(text)
+    return text
+
+
+def check(out: Path) -> int:
+    """Recompute budget.json and budget.md from the run files; 1 on a difference."""
+    doc = json.loads((out / "budget.json").read_text())
+    again = summarize(out, doc["seed"], doc["lrs"], {b: [int(x) for x in e["budgets"]]
+                                                     for b, e in doc["bases"].items()},
+                      doc["config"])
+    if json.loads(json.dumps(again)) != doc or table(again) != (out / "budget.md").read_text():
+        print(f"check failed: {out}/budget.json or budget.md differs from what the runs' "
+              "files give", file=sys.stderr)
+        return 1
+    print(f"{out}: budget.json and budget.md agree with the runs' files")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("experiments/results/tpn_budget"))
     ap.add_argument("--bases", nargs="+", default=["baseline", "org_il"])
@@ -107,34 +155,27 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--budgets", type=int, nargs="+", default=[40_000, 400_000])
     ap.add_argument("--lrs", type=float, nargs="+", default=[1e-4, 1e-3, 1e-2])
     ap.add_argument("--total-env-steps", type=int, default=5_000_000)
+    ap.add_argument("--check", action="store_true",
+                    help="recompute OUT's budget.json and budget.md; exit 1 on a difference")
     args = ap.parse_args(argv)
+    if args.check:
+        return check(args.out)
     if args.seed < 100:
         ap.error(f"--seed {args.seed}: sweeps use seeds no table uses (100+)")
     overrides = {"total_env_steps": args.total_env_steps, "dropout": 0.0}
-    summary = {"seed": args.seed, "lrs": args.lrs, "config": overrides, "bases": {}}
+    done: dict[str, list[int]] = {}
     for base in args.bases:
         base_dir = run_base(base, args.seed, args.out, overrides)
-        alone = evaluated(base_dir, base_dir / "val_results.json")
-        entry = summary["bases"][base] = {"alone": alone["overall"]["success"],
-                                          "budgets": {}}
+        evaluated(base_dir, base_dir / "val_results.json")
         for budget in args.budgets:
             tpn_dir = run_tpn(base_dir, budget, args.seed)
-            res = {f"{lr:g}": evaluated(tpn_dir, tpn_dir / f"val_tpn@{lr:g}.json", tpn_lr=lr)
-                   for lr in args.lrs}
-            chosen = max(res, key=lambda k: (res[k]["overall"]["success"],
-                                             res[k]["overall"]["spl"]))
-            v = last_val(tpn_dir)
-            entry["budgets"][str(budget)] = {
-                "val_ce": v.get("ce", float("nan")), "val_accuracy": v.get("accuracy", float("nan")),
-                "success": {k: r["overall"]["success"] for k, r in res.items()},
-                "spl": {k: r["overall"]["spl"] for k, r in res.items()},
-                "chosen": float(chosen), "gain": paired_gain(res[chosen], alone)}
-            args.out.mkdir(parents=True, exist_ok=True)
-            (args.out / "budget.json").write_text(json.dumps(summary, indent=1))
-            text = table(summary)
-            (args.out / "budget.md").write_text(text)
-            print(text, flush=True)
+            for lr in args.lrs:
+                evaluated(tpn_dir, tpn_dir / f"val_tpn@{lr:g}.json", tpn_lr=lr)
+            done.setdefault(base, []).append(budget)
+            print(write_summary(args.out, summarize(args.out, args.seed, args.lrs, done,
+                                                    overrides)), flush=True)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -216,3 +216,6 @@ def test_tpn_budget_gain_is_paired_by_episode_and_tabled(tmp_path):
                   "chosen": 1e-3, "gain": (mean, low, high)}}}}}
     line = budget.table(summary).splitlines()[2]
     assert line.startswith("| baseline | 40,000 | 1.000 | 50.0 | 60.0 | 70.0 | 65.0 | 0.001 |")
+    committed = EXPERIMENTS / "results" / "tpn_budget"         # the sweep's own files
+    if (committed / "budget.json").exists():
+        assert budget.main(["--out", str(committed), "--check"]) == 0
