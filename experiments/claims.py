@@ -261,13 +261,31 @@ def compact(results: dict, episodes: dict, lr: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def read_table_dir(out: Path) -> tuple[dict, dict, dict]:
-    """A table directory's spec and, from its runs' files, results[row][seed] = overall
-    summary and episodes[row][seed] = per-episode arrays (success, spl). Every summary is
-    recomputed from the per-episode outcomes and must equal the stored one (ValueError
-    naming the file otherwise); results written before per-episode outcomes were kept
-    are taken as stored, without a bootstrap."""
+def read_results(path: Path) -> tuple[dict, dict | None]:
+    """A results JSON -> (its stored overall summary, its per-episode arrays: success,
+    spl, ... (E,) each; None for results written before per-episode outcomes were kept).
+    The summary is recomputed from the per-episode outcomes and must equal the stored one
+    (ValueError naming the file otherwise)."""
     from orgnav_jax.evaluation import episodes_from_record, summarize
+    doc = json.loads(Path(path).read_text())
+    stored = doc["overall"]
+    if "per_episode" not in doc:
+        return stored, None
+    per = episodes_from_record(doc["per_episode"])
+    again = summarize(per)
+    bad = [k for k in stored if k in again and
+           not np.isclose(stored[k], again[k], rtol=0, atol=1e-12)]
+    if bad or set(again) != set(stored):
+        raise ValueError(f"{path}: the stored summary differs from its per-episode "
+                         f"outcomes in {bad or 'its keys'}")
+    return stored, per
+
+
+def read_table_dir(out: Path) -> tuple[dict, dict, dict]:
+    """A table directory's spec and, from its runs' files (read_results: every summary
+    checked against its per-episode outcomes), results[row][seed] = overall summary and
+    episodes[row][seed] = per-episode arrays (success, spl); results written before
+    per-episode outcomes were kept are taken as stored, without a bootstrap."""
     spec_path = out / "spec.json"
     if not spec_path.exists():
         raise ValueError(f"{spec_path}: missing (run_table.py --spec writes it)")
@@ -279,16 +297,8 @@ def read_table_dir(out: Path) -> tuple[dict, dict, dict]:
             path = run_table.results_path(out, row, seed)
             if not path.exists():
                 continue
-            doc = json.loads(path.read_text())
-            stored = doc["overall"]
-            if "per_episode" in doc:
-                per = episodes_from_record(doc["per_episode"])
-                again = summarize(per)
-                bad = [k for k in stored if k in again and
-                       not np.isclose(stored[k], again[k], rtol=0, atol=1e-12)]
-                if bad or set(again) != set(stored):
-                    raise ValueError(f"{path}: the stored summary differs from its "
-                                     f"per-episode outcomes in {bad or 'its keys'}")
+            stored, per = read_results(path)
+            if per is not None:
                 episodes.setdefault(row, {})[str(seed)] = {
                     "success": per["success"], "spl": per["spl"]}
             results.setdefault(row, {})[str(seed)] = stored

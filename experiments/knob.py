@@ -75,8 +75,7 @@ def point_rows(results: Path = RESULTS) -> list[dict]:
     """Per P: success of both rows, the paired ORG - Baseline statistics, adjacency."""
     rows = []
     for p, table, adj_dir in POINTS:
-        entry = {"p": p, "table": table, "adj_dir": adj_dir, "seeds": [], "stats": None,
-                 "adjacency": {}}
+        entry = {"p": p, "table": table, "adj_dir": adj_dir, "seeds": [], "stats": None}
         if (results / table / "spec.json").exists():
             _, res, _ = claims.read_table_dir(results / table)
             seeds = [s for s in SEEDS if s in res.get("org", {}) and
@@ -87,22 +86,21 @@ def point_rows(results: Path = RESULTS) -> list[dict]:
                 entry["org"] = [100 * res["org"][s]["success"] for s in seeds]
                 d = np.array(entry["org"]) - np.array(entry["baseline"])
                 entry["stats"] = claims.statistics(d, 1)
-        for s in SEEDS:
-            path = results / adj_dir / "runs" / f"org-s{s}" / "adjacency.json"
-            if path.exists():
-                entry["adjacency"][s] = read_adjacency(path)
+        entry["adjacency"] = adjacency_reports(results / adj_dir, "org", SEEDS)
         rows.append(entry)
     return rows
 
 
+def adjacency_reports(table_dir: Path, row: str, seeds) -> dict[str, dict]:
+    """{seed: report} of the runs <row>-s<seed> of table_dir that carry adjacency.json."""
+    paths = {s: table_dir / "runs" / f"{row}-s{s}" / "adjacency.json" for s in seeds}
+    return {s: read_adjacency(p) for s, p in paths.items() if p.exists()}
+
+
 def table_adjacency(results: Path = RESULTS) -> dict[str, dict[str, dict]]:
     """{row: {seed: report}} of the 5 M table's ORG and ORG + IL runs (TABLE_ADJACENCY)."""
-    out = {}
-    for row, adj_dir in TABLE_ADJACENCY:
-        paths = {s: results / adj_dir / "runs" / f"{row}-s{s}" / "adjacency.json"
-                 for s in TABLE_SEEDS}
-        out[row] = {s: read_adjacency(p) for s, p in paths.items() if p.exists()}
-    return out
+    return {row: adjacency_reports(results / adj_dir, row, TABLE_SEEDS)
+            for row, adj_dir in TABLE_ADJACENCY}
 
 
 def adjacency_lines(head: str, reports: dict[str, dict]) -> list[str]:
@@ -146,7 +144,7 @@ def markdown(rows: list[dict], table_runs: dict[str, dict[str, dict]]) -> str:
               "retrained bit for bit to recover its checkpoints):", "",
               "| row | runs | seed | anchor AUC | anchor pairs above the mean | p-value |",
               "|---|---|---|---|---|---|"]
-    for (row, adj_dir) in TABLE_ADJACENCY:
+    for row, adj_dir in TABLE_ADJACENCY:
         lines += adjacency_lines(f"| {row} | {adj_dir} |", table_runs[row])
     return "\n".join(lines) + "\n"
 

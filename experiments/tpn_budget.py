@@ -11,7 +11,8 @@ The test split is never touched. Everything resumes: rerun the same command afte
 interruption (finished runs and evaluations are skipped).
 
 OUT/budget.json holds the summary and OUT/budget.md the table (`--check` recomputes
-both from the run files, which are committed: config, metrics and val results):
+both from the run files, which are committed: config, metrics and val results, each
+results JSON checked against its per-episode outcomes by claims.read_results):
 per base and budget, the stage-2 val cross-entropy and accuracy, val success at each lr,
 the lr chosen on val, and its gain over the base alone with a 95% interval paired by val
 episode (normal approximation; the lr was chosen on the same episodes, so the interval of
@@ -28,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+import claims  # noqa: E402  (sibling script: results JSONs read and checked)
 import run_table  # noqa: E402  (provenance records)
 
 from orgnav_jax import api  # noqa: E402
@@ -35,22 +37,17 @@ from orgnav_jax.training.config import get_config  # noqa: E402
 from orgnav_jax.training.run_dir import is_run_dir, read_metrics  # noqa: E402
 
 
-def evaluated(run_dir: Path, out: Path, **test_time) -> dict:
-    """The val results of run_dir at `out` (evaluated once, then read back)."""
+def evaluate_once(run_dir: Path, out: Path, **test_time) -> None:
+    """run_dir's val results written to `out`, unless they are there already."""
     if not out.exists():
         api.evaluate_run(run_dir, "val", out=out, progress=False, **test_time)
         run_table.record_provenance(run_dir, f"evaluated on val -> {out.name}")
-    return json.loads(out.read_text())
-
-
-def successes(results: dict) -> np.ndarray:
-    """(E,) 1.0 where the episode succeeded (outcome 0: evaluation.OUTCOMES)."""
-    return (np.asarray(results["per_episode"]["outcome"]) == 0).astype(float)
 
 
 def paired_gain(a: dict, b: dict) -> tuple[float, float, float]:
-    """Success of a minus b in points over the same episodes -> (mean, low, high)."""
-    d = 100 * (successes(a) - successes(b))
+    """Success of a minus b in points over the same episodes (per-episode arrays, as
+    claims.read_results gives) -> (mean, low, high): a normal 95% interval."""
+    d = 100 * (a["success"].astype(float) - b["success"])
     half = 1.96 * d.std(ddof=1) / np.sqrt(len(d))
     return d.mean(), d.mean() - half, d.mean() + half
 
@@ -101,26 +98,27 @@ def table(summary: dict) -> str:
 
 
 def budget_entry(base_dir: Path, budget: int, lrs, alone: dict) -> dict:
-    """One (base, budget) cell of the summary, from the TPN run's files."""
+    """One (base, budget) cell of the summary, from the TPN run's files (`alone`: the
+    base's per-episode val arrays)."""
     tpn_dir = base_dir / f"tpn-{budget}"
-    res = {f"{lr:g}": json.loads((tpn_dir / f"val_tpn@{lr:g}.json").read_text())
-           for lr in lrs}
-    chosen = max(res, key=lambda k: (res[k]["overall"]["success"], res[k]["overall"]["spl"]))
+    res = {f"{lr:g}": claims.read_results(tpn_dir / f"val_tpn@{lr:g}.json") for lr in lrs}
+    chosen = max(res, key=lambda k: (res[k][0]["success"], res[k][0]["spl"]))
     v = last_val(tpn_dir)
     return {"val_ce": v.get("ce", float("nan")),
             "val_accuracy": v.get("accuracy", float("nan")),
-            "success": {k: r["overall"]["success"] for k, r in res.items()},
-            "spl": {k: r["overall"]["spl"] for k, r in res.items()},
-            "chosen": float(chosen), "gain": list(paired_gain(res[chosen], alone))}
+            "success": {k: overall["success"] for k, (overall, _) in res.items()},
+            "spl": {k: overall["spl"] for k, (overall, _) in res.items()},
+            "chosen": float(chosen), "gain": list(paired_gain(res[chosen][1], alone))}
 
 
 def summarize(out: Path, seed: int, lrs, done: dict[str, list[int]], config: dict) -> dict:
-    """The summary of the finished (base, budgets) in `done`, read from the run files."""
+    """The summary of the finished (base, budgets) in `done`, read from the run files
+    (every results JSON checked against its per-episode outcomes)."""
     summary = {"seed": seed, "lrs": list(lrs), "config": config, "bases": {}}
     for base, budgets in done.items():
         base_dir = out / "runs" / f"{base}-s{seed}"
-        alone = json.loads((base_dir / "val_results.json").read_text())
-        summary["bases"][base] = {"alone": alone["overall"]["success"], "budgets": {
+        overall, alone = claims.read_results(base_dir / "val_results.json")
+        summary["bases"][base] = {"alone": overall["success"], "budgets": {
             str(b): budget_entry(base_dir, b, lrs, alone) for b in budgets}}
     return summary
 
@@ -166,11 +164,11 @@ def main(argv: list[str] | None = None) -> int:
     done: dict[str, list[int]] = {}
     for base in args.bases:
         base_dir = run_base(base, args.seed, args.out, overrides)
-        evaluated(base_dir, base_dir / "val_results.json")
+        evaluate_once(base_dir, base_dir / "val_results.json")
         for budget in args.budgets:
             tpn_dir = run_tpn(base_dir, budget, args.seed)
             for lr in args.lrs:
-                evaluated(tpn_dir, tpn_dir / f"val_tpn@{lr:g}.json", tpn_lr=lr)
+                evaluate_once(tpn_dir, tpn_dir / f"val_tpn@{lr:g}.json", tpn_lr=lr)
             done.setdefault(base, []).append(budget)
             print(write_summary(args.out, summarize(args.out, args.seed, args.lrs, done,
                                                     overrides)), flush=True)

@@ -22,7 +22,8 @@ from orgnav_jax.scenes.synthetic import catalog, layout
 
 def pytest_xdist_auto_num_workers(config) -> int:
     """`-n auto` (pyproject's addopts): one worker per core this process may use, at most
-    4 (each worker holds its own jax, ~1-4 GB, and compiles what it runs)."""
+    4: each worker holds its own jax and compiles what it runs (the largest process of a
+    2-worker suite reached 4.6 GB resident, `/usr/bin/time -v`, docs/testing.md)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return max(1, min(cores or 1, 4))
 

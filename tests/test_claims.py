@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -206,8 +207,7 @@ def test_tpn_budget_gain_is_paired_by_episode_and_tabled(tmp_path):
     rng = np.random.default_rng(0)
     alone = rng.random(400) < 0.6
     better = alone | (rng.random(400) < 0.2)             # never worse, sometimes better
-    a, b = fake_results(better, rng), fake_results(alone, rng)
-    mean, low, high = budget.paired_gain(a, b)
+    mean, low, high = budget.paired_gain({"success": better}, {"success": alone})
     d = 100 * (better.astype(float) - alone)
     assert mean == pytest.approx(d.mean()) and low < mean < high and low > 0
     assert high - low == pytest.approx(2 * 1.96 * d.std(ddof=1) / np.sqrt(400))
@@ -217,5 +217,12 @@ def test_tpn_budget_gain_is_paired_by_episode_and_tabled(tmp_path):
     line = budget.table(summary).splitlines()[2]
     assert line.startswith("| baseline | 40,000 | 1.000 | 50.0 | 60.0 | 70.0 | 65.0 | 0.001 |")
     committed = EXPERIMENTS / "results" / "tpn_budget"         # the sweep's own files
-    if (committed / "budget.json").exists():
-        assert budget.main(["--out", str(committed), "--check"]) == 0
+    assert budget.main(["--out", str(committed), "--check"]) == 0
+    copy = tmp_path / "tpn_budget"                             # a tampered summary is named
+    shutil.copytree(committed, copy)
+    val = copy / "runs" / "baseline-s100" / "val_results.json"
+    doc = json.loads(val.read_text())
+    doc["overall"]["success"] += 0.01
+    val.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="val_results.json: the stored summary differs"):
+        budget.main(["--out", str(copy), "--check"])
