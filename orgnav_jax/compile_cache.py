@@ -22,11 +22,25 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
 
 
 def compiled_once(factory):
-    """Cache a factory of jitted functions on its (hashable) arguments."""
-    return functools.lru_cache(maxsize=16)(factory)
+    """Cache a factory of jitted functions on its (hashable) arguments, bound to the
+    factory's signature with its defaults filled in: f(cfg, model) and
+    f(cfg, model, None) are one key (a bare lru_cache keys on how the call was spelled,
+    and a second spelling compiled the same program again)."""
+    signature = inspect.signature(factory)
+    cached = functools.lru_cache(maxsize=16)(factory)
+
+    @functools.wraps(factory)
+    def call(*args, **kwargs):
+        bound = signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        return cached(*bound.args, **bound.kwargs)
+
+    call.cache_info = cached.cache_info
+    return call
 
 
 def computation_of(cfg, host_only: tuple[str, ...]):

@@ -131,6 +131,24 @@ def test_train_chunk_compiles_once(tmp_path, tiny_dir, extra):
     assert all(np.isfinite(x).all() for x in leaves(runner.params))
 
 
+def test_a_cached_factory_is_one_entry_however_the_call_is_spelled():
+    """compiled_once keys on the bound arguments with defaults filled in: the scale-out
+    worker called cached_train_chunk(cfg, model) where the trainer calls (cfg, model,
+    None, False), and the same chunk compiled twice."""
+    from orgnav_jax.compile_cache import compiled_once
+    made = []
+
+    @compiled_once
+    def make(cfg, model, mesh=None, population=False):
+        made.append((cfg, model, mesh, population))
+        return object()
+
+    first = make(1, 2)
+    assert make(1, 2, None) is first and make(1, model=2, population=False) is first
+    assert make(1, 2, population=True) is not first
+    assert made == [(1, 2, None, False), (1, 2, None, True)]
+
+
 def test_where_the_rooms_come_from_is_not_in_the_compile_key(tmp_path, tiny_dir):
     """Two copies of a scene set (another directory, another scene seed field, or the
     preset instead of a directory) give one cached program (the rooms are its input)."""
