@@ -11,9 +11,13 @@ results JSON checked against its per-episode outcomes; metrics.jsonl for the cur
   95% t interval and verdict (claims.statistics; "20 M > 5 M");
 - every claim the two tables share, on the same seeds, at 5 M and at 20 M, and whether
   its verdict changed;
-- the val curves: mean val success over the seeds at the last val record at or before 5,
+- the val curves: mean val success over the seeds at the first val record at or after 5,
   10, 15 and 20 M, and the change from 15 M to 20 M per seed with its interval (a curve
-  has flattened when that change is small and its interval includes 0).
+  has flattened when that change is small and its interval includes 0);
+- the learned adjacency's anchor statistic (knob.py) of the ORG and ORG + IL runs at 5 M
+  (the table's runs retrained bit for bit: rerun_org_5m, rerun_org_il_5m) and at 20 M
+  (`python experiments/knob.py --adjacency experiments/results/table_20m/runs/org*-s*`
+  writes each run's adjacency.json from its best-on-val checkpoint).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import claims  # noqa: E402  (sibling script: the paired statistics, reading a table dir)
+import knob  # noqa: E402  (sibling script: the adjacency reports)
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHORT, LONG = RESULTS / "table_5m", RESULTS / "table_20m"
@@ -72,13 +77,14 @@ def claim_changes(short: dict, long: dict, lr: str) -> list[str]:
 
 
 def val_at(run_dir: Path, steps: int) -> float:
-    """Val success (points) of the last val record at or before `steps` env steps."""
+    """Val success (points) of the first val record at or after `steps` env steps (a run
+    stops at the end of the chunk that crosses its budget, so its last record is there)."""
     path = run_dir / "metrics.jsonl"
     records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    vals = [r for r in records if r.get("kind") == "val" and r["env_steps"] <= steps]
+    vals = [r for r in records if r.get("kind") == "val" and r["env_steps"] >= steps]
     if not vals:
-        raise ValueError(f"{path}: no val record at or before {steps:,} env steps")
-    return 100 * float(vals[-1]["success"])
+        raise ValueError(f"{path}: no val record at or after {steps:,} env steps")
+    return 100 * float(vals[0]["success"])
 
 
 def curve_lines(out: Path, seeds: list[str]) -> list[str]:
@@ -97,6 +103,16 @@ def curve_lines(out: Path, seeds: list[str]) -> list[str]:
     return lines
 
 
+def adjacency_section(long_dir: Path, seeds: list[str]) -> list[str]:
+    lines = ["| row | budget | seed | anchor AUC | anchor pairs above the mean | p-value |",
+             "|---|---|---|---|---|---|"]
+    for row in ("org", "org_il"):
+        for budget, where in (("5 M", RESULTS / f"rerun_{row}_5m"), ("20 M", long_dir)):
+            lines += knob.adjacency_lines(f"| {row} | {budget} |",
+                                          knob.adjacency_reports(where, row, seeds))
+    return lines
+
+
 def markdown(short_dir: Path = SHORT, long_dir: Path = LONG) -> str:
     spec, long, _ = claims.read_table_dir(long_dir)
     seeds = [str(s) for s in spec["seeds"]]
@@ -112,7 +128,10 @@ def markdown(short_dir: Path = SHORT, long_dir: Path = LONG) -> str:
         + ["", "## The claims on the same seeds", ""]
         + claim_changes(short, long, claims.lr_tag(spec))
         + ["", "## The val curves (success, points)", ""]
-        + curve_lines(long_dir, seeds)) + "\n"
+        + curve_lines(long_dir, seeds)
+        + ["", "## The learned adjacency (anchor pairs against other same-room-type pairs; "
+           "AUC 0.5 = chance)", ""]
+        + adjacency_section(long_dir, seeds)) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:

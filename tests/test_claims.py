@@ -226,3 +226,30 @@ def test_tpn_budget_gain_is_paired_by_episode_and_tabled(tmp_path):
     val.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="val_results.json: the stored summary differs"):
         budget.main(["--out", str(copy), "--check"])
+
+
+def test_the_20m_comparison_agrees_with_its_runs(tmp_path):
+    """experiments/budget_20m.py --check: budget.md is what the 5 M and 20 M runs' files
+    give; the curve points are the first val record at or after each budget, so a changed
+    val record at 20 M changes the table."""
+    spec = importlib.util.spec_from_file_location("budget_20m", EXPERIMENTS / "budget_20m.py")
+    budget = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(budget)
+    assert budget.main(["--check"]) == 0
+    run = budget.LONG / "runs" / "org-s0"
+    vals = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()
+            if '"val"' in line]
+    assert budget.val_at(run, 20_000_000) == 100 * vals[-1]["success"]
+    assert vals[-2]["env_steps"] < 20_000_000 <= vals[-1]["env_steps"]
+    copy = tmp_path / "table_20m"
+    shutil.copytree(budget.LONG, copy)
+    metrics = copy / "runs" / "org-s0" / "metrics.jsonl"
+    lines = metrics.read_text().splitlines()
+    last = max(i for i, line in enumerate(lines) if '"val"' in line)
+    doc = json.loads(lines[last])
+    doc["success"] = 0.0
+    lines[last] = json.dumps(doc)
+    metrics.write_text("\n".join(lines) + "\n")
+    assert budget.markdown(long_dir=copy) != (budget.LONG / "budget.md").read_text()
+    with pytest.raises(ValueError, match="no val record at or after 30,000,000 env steps"):
+        budget.val_at(run, 30_000_000)
