@@ -255,3 +255,31 @@ def cooccurrence_anchor_matrix():
             i, j = K.CATEGORY_INDEX[o], K.CATEGORY_INDEX[a]
             M[i, j] = M[j, i] = 1
     return M
+
+
+def test_init_params_is_one_program_per_model_and_equals_the_op_by_op_init():
+    """init_params is jitted with the model as a static argument: every model kind is
+    hashable and equal when rebuilt, so a rebuilt model reuses the program; its parameters
+    are the bits flax's op-by-op init gives."""
+    from orgnav_jax.models import navmodel
+    scenes = _fake_scenes()
+    for name in sorted(navmodel.ENCODERS):
+        cfg = get_config("tiny", model=name)
+        assert build_model(cfg, scenes) == build_model(cfg, scenes), name
+        assert hash(build_model(cfg, scenes)) == hash(build_model(cfg, scenes)), name
+    model = build_model(get_config("tiny", model="dsp"), scenes)
+    key = jax.random.PRNGKey(3)
+    jitted = init_params(model, key, scenes)
+    size = navmodel._init_params._cache_size()
+    again = init_params(build_model(get_config("tiny", model="dsp"), scenes), key, scenes)
+    assert navmodel._init_params._cache_size() == size
+    C_ = scenes.present.shape[-1]
+    inputs = ModelInputs(jnp.zeros((1, 7, 7, scenes.global_dim)),
+                         jnp.zeros((1, C_, scenes.appearance_dim)), jnp.zeros((1, C_, 4)),
+                         jnp.zeros((1, C_)), jnp.zeros((1, C_)), jnp.zeros((1, 6)))
+    eager = model.init({"params": key}, inputs, model.initial_carry(1))
+    flat = lambda t: jax.tree_util.tree_leaves_with_path(t)
+    assert [p for p, _ in flat(jitted)] == [p for p, _ in flat(eager)]
+    for (path, x), (_, y), (_, z) in zip(flat(jitted), flat(eager), flat(again)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=str(path))
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(z), err_msg=str(path))

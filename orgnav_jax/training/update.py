@@ -12,6 +12,8 @@ metrics then have that axis too). With neither, the program is the plain one-dev
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import optax
@@ -35,15 +37,23 @@ def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
 
 
 def init_runner(cfg: TrainConfig, model, optimizer, scenes, key) -> RunnerState:
+    """A fresh RunnerState: parameters, Adam moments, cfg.num_envs reset environments.
+    (The resets are one jitted program per env count and EnvParams, like init_params:
+    op by op they compiled every primitive on a process's first call.)"""
     k_params, k_env, k_run = jax.random.split(key, 3)
     params = init_params(model, k_params, scenes)
-    _, env_state = jax.vmap(env.reset, in_axes=(0, None, None))(
-        jax.random.split(k_env, cfg.num_envs), scenes, env_params(cfg))
+    env_state = _reset_all(jax.random.split(k_env, cfg.num_envs), scenes, env_params(cfg))
     return RunnerState(params=params, opt_state=optimizer.init(params), env_state=env_state,
                        carry=model.initial_carry(cfg.num_envs),
                        fresh=jnp.ones(cfg.num_envs, bool),
                        ep_return=jnp.zeros(cfg.num_envs, jnp.float32), key=k_run,
                        update=jnp.int32(0))
+
+
+@partial(jax.jit, static_argnums=2)
+def _reset_all(keys, scenes, params: env.EnvParams):
+    """(N, 2) keys -> the EnvState of N reset environments."""
+    return jax.vmap(env.reset, in_axes=(0, None, None))(keys, scenes, params)[1]
 
 
 def make_train_chunk(cfg: TrainConfig, model, optimizer, mesh=None, population=False):
