@@ -7,7 +7,9 @@ row uses; the commands are in docs/results.md):
 - dropout.json: the Baseline with dropout 0 and 0.25 (2 M env steps, best val);
 - il.json: IL variants (step, norm, weight) at the chosen dropout (2 M env steps);
 - tpn_lr_<base>.json: the TPN's test-time learning rate on a Baseline and an ORG + IL
-  base (5 M env steps, 40 k stage-2 episodes, 1000 val episodes per lr).
+  base (5 M env steps, 40 k stage-2 episodes, 1000 val episodes per lr);
+- savn.json: D-SAVN's inner lr and segment length k (2 M env steps), used by both SAVN
+  rows.
 Each choice is the variant with the highest val success (SPL breaks ties). It writes
 choices.json (the choices with their val numbers; tests/test_val_choices.py ties the
 package's defaults to it) and choices.md (the table in docs/results.md).
@@ -57,6 +59,12 @@ def choices(root: Path = OUT) -> dict:
                           ("il_weight", 1.0)):
         out[name] = {"value": fields.get(name, default), "variant": pick, "val": il,
                      "from": "il.json"}
+    if (root / "savn.json").exists():
+        savn = sweep(root / "savn.json")
+        pick = best(savn)
+        for name, default in (("savn_inner_lr", 1e-4), ("savn_steps", 6)):
+            out[name] = {"value": savn[pick]["overrides"].get(name, default),
+                         "variant": pick, "val": savn, "from": "savn.json"}
     per_base = {}
     for base in TPN_BASES:
         path = root / f"tpn_lr_{base}.json"
@@ -87,6 +95,13 @@ def markdown(ch: dict) -> str:
                   f"`{c['variant']}`: il_step {ch['il_step']['value']}, il_norm "
                   f"{ch['il_norm']['value']}, il_weight {ch['il_weight']['value']:g}")
         lines.append(f"| {what} | {cells} | {picked} |")
+    if "savn_inner_lr" in ch:
+        c = ch["savn_inner_lr"]
+        cells = "; ".join(f"{v}: {100 * r['success']:.1f} / {100 * r['spl']:.1f}"
+                          for v, r in c["val"].items())
+        lines.append(f"| D-SAVN inner lr and k (2 M steps) | {cells} | `{c['variant']}`: "
+                     f"savn_inner_lr {c['value']:g}, savn_steps "
+                     f"{ch['savn_steps']['value']} |")
     if "tpn_lr" in ch:
         for base, res in ch["tpn_lr"]["val"].items():
             cells = "; ".join(f"{lr}: {100 * r['success']:.1f} / {100 * r['spl']:.1f}"

@@ -24,7 +24,7 @@ def val_choices():
 def test_the_record_is_what_the_sweeps_give(val_choices):
     recorded = json.loads((val_choices.OUT / "choices.json").read_text())
     assert recorded == json.loads(json.dumps(val_choices.choices()))
-    for sweep in ("dropout.json", "il.json"):     # made with a seed no table uses
+    for sweep in ("dropout.json", "il.json", "savn.json"):   # seeds no table uses
         seeds = {s for runs in json.loads((val_choices.OUT / sweep).read_text()).values()
                  for s in runs}
         assert seeds and all(int(s) >= 100 for s in seeds), (sweep, seeds)
@@ -41,6 +41,10 @@ def test_defaults_are_the_choices(val_choices):
     for field in ("il_step", "il_norm", "il_weight"):
         assert getattr(TrainConfig(), field) == chosen[field], field
         assert getattr(get_config("org_il"), field) == chosen[field], field
+    for field in ("savn_inner_lr", "savn_steps"):
+        assert getattr(TrainConfig(), field) == chosen[field], field
+        assert getattr(get_config("dsavn"), field) == getattr(get_config("savn"), field) \
+            == chosen[field], field
     if "tpn_lr" in chosen:
         assert TPN_LR == TPNConfig().tpn_lr == TestTime().tpn_lr == chosen["tpn_lr"]
         assert all(float(row.partition("@")[2]) == chosen["tpn_lr"]
