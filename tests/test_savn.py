@@ -25,9 +25,11 @@ def rooms(tiny_scenes):
     return tiny_scenes.split_view("train").to_device()
 
 
+SMALL = dict(num_envs=3, episode_cap=8, savn_steps=3, savn_inner_steps=2)
+
+
 def setup(rooms, **kw):
-    cfg = get_config("dsavn", scene_preset="tiny", num_envs=3, episode_cap=8, savn_steps=3,
-                     savn_inner_steps=2, **{**TINY_WIDTHS, **kw})
+    cfg = get_config("dsavn", scene_preset="tiny", **{**SMALL, **TINY_WIDTHS, **kw})
     model = build_model(cfg, rooms)
     learned = savn.build_learned_loss()
     meta = savn.init_meta(model, learned, cfg, rooms, jax.random.PRNGKey(0))
@@ -198,16 +200,21 @@ def test_inner_lr_zero_equals_the_base_model_and_evaluation_is_deterministic(tin
     assert (a["action"] != base["action"]).any()
 
 
+# The CLI test below trains this computation, so the two share one compiled chunk
+# (the trainer's cache, loop.cached_savn_chunk).
+CHUNK_FIELDS = dict(SMALL, updates_per_chunk=2)
+
+
 def test_the_chunk_compiles_once(rooms):
-    from orgnav_jax.training.update import make_optimizer
-    cfg, model, learned, _ = setup(rooms, updates_per_chunk=2)
-    optimizer = make_optimizer(cfg)
-    chunk = savn.make_savn_chunk(cfg, model, learned, optimizer)
+    from orgnav_jax.training import loop
+    cfg, model, _, _ = setup(rooms, **CHUNK_FIELDS)
+    optimizer, learned, chunk = loop.cached_savn_chunk(loop.compute_config(cfg), model)
     runner = savn.init_savn_runner(cfg, model, learned, optimizer, rooms, jax.random.PRNGKey(1))
     before = jax.tree_util.tree_leaves(runner.params)
     for _ in range(3):
         runner, metrics = chunk(runner, rooms)
     assert chunk._cache_size() == 1
+    assert loop.cached_savn_chunk(loop.compute_config(cfg), model)[2] is chunk
     assert bool(metrics["loss_finite"]) and int(runner.update) == 6
     assert float(metrics["episodes"]) == 2 * cfg.num_envs        # whole episodes
     assert 0 < float(metrics["env_steps_real"]) <= 2 * cfg.num_envs * cfg.episode_cap
@@ -216,14 +223,15 @@ def test_the_chunk_compiles_once(rooms):
 
 
 def test_dsavn_preset_trains_and_evaluates_from_the_cli(tiny_dir, tmp_path):
+    """(2 chunks of the computation of the compiles-once test: its program is reused.)"""
     from orgnav_jax.errors import run_cli
     from orgnav_jax.train import main
     run = tmp_path / "dsavn"
     argv = ["--preset", "dsavn", "--scenes-dir", tiny_dir, "--run-dir", str(run),
-            "--num-envs", "4", "--updates-per-chunk", "2", "--total-env-steps", "480",
-            "--eval-every-chunks", "2", "--eval-episodes-per-room-type", "2",
-            "--quiet", "--no-test", *sum(([f"--{k.replace('_', '-')}", str(v)]
-                                          for k, v in TINY_WIDTHS.items()), [])]
+            "--total-env-steps", "96", "--eval-every-chunks", "2",
+            "--eval-episodes-per-room-type", "2", "--quiet", "--no-test",
+            *sum(([f"--{k.replace('_', '-')}", str(v)]
+                  for k, v in {**TINY_WIDTHS, **CHUNK_FIELDS}.items()), [])]
     assert run_cli(main, argv) == 0
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["savn"] and cfg["model"] == "baseline" and cfg["version"] == 6
