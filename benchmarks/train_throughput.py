@@ -14,6 +14,7 @@ widths) and each number of envs N, it compiles `make_train_chunk` (updates_per_c
 * env_steps_per_s: updates_per_chunk * N * rollout_len env-steps over the best of
   --repeats runs of the compiled chunk (the same start state every run);
 * flops_per_env_step, gflops_per_s: see "FLOPs" below;
+* scratch_mb: XLA's temporary buffers of the compiled chunk (memory_analysis());
 * matmul_peak_gflops: a jitted float32 (2048x2048)@(2048x2048) matmul, best of several,
   measured before and after the rows (the larger kept: the machine may be shared).
 
@@ -164,6 +165,12 @@ def bench_scenes(base, preset: str):
 
 
 # --------------------------------------------------------------------------- timing
+def scratch_mb(compiled) -> float:
+    """XLA's temporary buffers of a compiled program, MB (compiled.memory_analysis():
+    what the program allocates beyond its arguments and outputs)."""
+    return round(compiled.memory_analysis().temp_size_in_bytes / 1e6, 1)
+
+
 def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
              rollout_len: int | None, repeats: int, devices: int = 1, seeds: int = 1,
              dtype: str = "float32") -> dict:
@@ -205,7 +212,7 @@ def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
             "devices": scale.mesh_size(mesh), "seeds": seeds, "dtype": dtype,
             "env_steps_per_s": round(sps, 1), "compile_s": round(compile_s, 2),
             "gflops_per_s": round(flops / steps * sps / 1e9, 2),
-            "flops_per_env_step": round(flops / steps),
+            "flops_per_env_step": round(flops / steps), "scratch_mb": scratch_mb(compiled),
             # table only (not in the JSON line)
             "_raw_flops_per_env_step": raw / steps, "_run_s": best, "_steps": steps,
             "_rollout_len": cfg.rollout_len}
@@ -240,6 +247,7 @@ def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: 
     return {"preset": preset, "model": f"{model_name}+savn" + ("-fo" if first_order else ""),
             "num_envs": num_envs, "env_steps_per_s": round(real / best, 1),
             "slot_steps_per_s": round(slots / best, 1), "compile_s": round(compile_s, 2),
+            "scratch_mb": scratch_mb(compiled),
             "mean_episode_steps": round(real / (cfg.updates_per_chunk * cfg.num_envs), 2),
             "_run_s": best}
 
@@ -343,7 +351,9 @@ def main() -> None:
                               f"{sv['env_steps_per_s']:.0f} env-steps/s "
                               f"({sv['env_steps_per_s'] / r['env_steps_per_s']:.2f} of "
                               f"{model_name}; {sv['slot_steps_per_s']:.0f} episode-slot "
-                              f"steps/s, {sv['mean_episode_steps']} steps per episode)",
+                              f"steps/s, {sv['mean_episode_steps']} steps per episode; "
+                              f"XLA scratch {sv['scratch_mb']:.0f} MB against "
+                              f"{r['scratch_mb']:.0f} MB)",
                               flush=True)
     print("D: devices (env axis sharded); S: seeds in one program; steps: env-steps per "
           "chunk (all seeds); MFLOP/step: scan-aware count; xla raw: "
