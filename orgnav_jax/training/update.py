@@ -1,6 +1,6 @@
 """One jitted chunk of training: `updates_per_chunk` x (rollout + gradient step).
 
-    init_runner(cfg, model, scenes, key)      -> RunnerState
+    init_runner(cfg, model, optimizer, scenes, key) -> RunnerState
     train_chunk(runner, scenes)               -> (RunnerState, metrics dict of scalars)
 where train_chunk = make_train_chunk(cfg, model, optimizer), jitted once.
 
