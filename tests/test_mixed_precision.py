@@ -13,17 +13,18 @@ from helpers import small_cfg, trained_and_random_success
 
 
 def _chunk_pair(tiny_dir, tmp_path, model="baseline"):
-    """One runner; a chunk of the float32 and the bfloat16 program from it."""
+    """One runner; a chunk of the float32 and the bfloat16 program from it (the trainer's
+    cached chunks: the float32 one is the program every small run of the model uses)."""
     from orgnav_jax.models import build_model
-    from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
+    from orgnav_jax.training import loop
+    from orgnav_jax.training.update import init_runner
     train = scenes_mod.load(tiny_dir).split_view("train").to_device()
     out = {}
     for dtype in ("float32", "bfloat16"):
         cfg = small_cfg(tiny_dir, tmp_path, dtype=dtype, model=model)
         model_ = build_model(cfg, train)
-        opt = make_optimizer(cfg)
+        opt, chunk = loop.cached_train_chunk(loop.compute_config(cfg), model_)
         runner = init_runner(cfg, model_, opt, train, jax.random.PRNGKey(0))
-        chunk = make_train_chunk(cfg, model_, opt)
         hlo = chunk.lower(runner, train).as_text()
         after, metrics = chunk(runner, train)
         out[dtype] = (runner, after, metrics, hlo)
