@@ -23,11 +23,12 @@ results JSON checked against its per-episode outcomes; metrics.jsonl for the cur
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from orgnav_jax.training.run_dir import METRICS_FILE, read_metrics
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import claims  # noqa: E402  (sibling script: the paired statistics, reading a table dir)
@@ -81,11 +82,10 @@ def claim_changes(short: dict, long: dict, lr: str) -> list[str]:
 def val_at(run_dir: Path, steps: int) -> float:
     """Val success (points) of the first val record at or after `steps` env steps (a run
     stops at the end of the chunk that crosses its budget, so its last record is there)."""
-    path = run_dir / "metrics.jsonl"
-    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    vals = [r for r in records if r.get("kind") == "val" and r["env_steps"] >= steps]
+    vals = [r for r in read_metrics(run_dir) if r["kind"] == "val" and r["env_steps"] >= steps]
     if not vals:
-        raise ValueError(f"{path}: no val record at or after {steps:,} env steps")
+        raise ValueError(f"{run_dir / METRICS_FILE}: no val record at or after {steps:,} "
+                         "env steps")
     return 100 * float(vals[0]["success"])
 
 

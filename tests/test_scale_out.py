@@ -291,10 +291,10 @@ def two_processes(args, tmp_path, timeout: int = 600) -> list[subprocess.Complet
     this machine (one CPU device each, gloo collectives) -> both results."""
     port = free_port()
     env = subprocess_env(devices=1)
-    # the four processes of a test compile the same programs: an on-disk cache of the
-    # ones over a second lets the second job read them (docs/testing.md: 49 -> 40 s)
+    # the four processes of a test compile the same programs: an on-disk cache (jax keeps
+    # programs that took over a second) lets the second job read the first's
+    # (docs/testing.md: 49 -> 40 s)
     env.setdefault("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "jit-cache"))
-    env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1")
     procs = [subprocess.Popen(
         [sys.executable, "-m", "orgnav_jax.train", *map(str, args), "--coordinator",
          f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)],
