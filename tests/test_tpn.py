@@ -214,7 +214,8 @@ def test_cli_trains_and_evaluates_with_tpn(base_run, tmp_path, capsys):
     assert load_tpn_config(run_dir).base_dir == base_run
     assert summary["episodes"] == 32 and (run_dir / "best").exists()
     # every test-time option through the CLI, several to an evaluation (each variant is
-    # a program of its own to compile; test_tpn_lowrank.py checks what the options do)
+    # a program of its own to compile; what the options do is tested in this file,
+    # test_tpn_module.py and test_tpn_lowrank.py)
     for variant in ([], ["--when", "all", "--target", "random", "--deadlock", "cosine",
                          "--scope", "trunk", "--tpn-lr", "1e-3"],
                     ["--scope", "actor", "--tpn-train-mode", "true", "--reset-every", "0"]):
