@@ -30,8 +30,8 @@ def save_leaves(path, tree):
 # Every task trains this one computation (IL and dropout on), so the process compiles
 # three chunks in all (one device, two devices, a population on two devices), each once
 # (the trainer's own cache: loop.cached_train_chunk). A checkpoint every 2 chunks (after
-# chunks 2 and 4: the killed runs stop after 2) halves the worker's 50 orbax saves
-# (0.2 s each).
+# chunks 2 and 4: the killed runs stop after 2) cuts the worker's orbax saves from 50 to
+# 30 (the best-on-val ones stay), 9.7 s to 4.9 s.
 KW = dict(il="deadlock", dropout=0.25, checkpoint_every_chunks=2)
 
 

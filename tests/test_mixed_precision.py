@@ -54,11 +54,11 @@ def test_bfloat16_computes_in_bf16_with_float32_parameters(tmp_path, tiny_dir, m
 
 @pytest.mark.slow
 def test_bfloat16_training_beats_random_on_the_val_rooms(tmp_path, tiny_dir):
-    """~40 s: the baseline trained in bf16 for 163,840 env steps (16 chunks) on the
-    tiny training rooms, seeds 0-2 in one program, succeeds on the unseen val rooms at
-    least twice as often as random, on average over the seeds. (One seed is a draw: on an
-    AVX-512 BF16 CPU seed 0 reached 0.072 and float32's seed 1 0.065 on test,
-    docs/scale_out.md. At 400 k env steps the seeds' val success was no higher than at
+    """About a minute (55 s alone): the baseline trained in bf16 for 163,840 env steps
+    (16 chunks) on the tiny training rooms, seeds 0-2 in one program, succeeds on the
+    unseen val rooms at least twice as often as random, on average over the seeds. (One
+    seed is a draw: on an AVX-512 BF16 CPU seed 0 reached 0.072 and float32's seed 1
+    0.065 on test, docs/scale_out.md. At 400 k env steps the seeds' val success was no higher than at
     164 k: 0.155, 0.125, 0.19 at 164 k; 0.14, 0.125, 0.165 at 246 k; 0.13, 0.07, 0.095 at
     400 k, random 0.027; docs/testing.md.)"""
     from orgnav_jax.training import loop

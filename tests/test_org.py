@@ -273,10 +273,8 @@ def test_init_params_is_one_program_per_model_and_equals_the_op_by_op_init():
     size = navmodel._init_params._cache_size()
     again = init_params(build_model(get_config("tiny", model="dsp"), scenes), key, scenes)
     assert navmodel._init_params._cache_size() == size
-    C_ = scenes.present.shape[-1]
-    inputs = ModelInputs(jnp.zeros((1, 7, 7, scenes.global_dim)),
-                         jnp.zeros((1, C_, scenes.appearance_dim)), jnp.zeros((1, C_, 4)),
-                         jnp.zeros((1, C_)), jnp.zeros((1, C_)), jnp.zeros((1, 6)))
+    inputs = navmodel.dummy_inputs(scenes.present.shape[-1], scenes.global_dim,
+                                   scenes.appearance_dim)
     eager = model.init({"params": key}, inputs, model.initial_carry(1))
     flat = lambda t: jax.tree_util.tree_leaves_with_path(t)
     assert [p for p, _ in flat(jitted)] == [p for p, _ in flat(eager)]

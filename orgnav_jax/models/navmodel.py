@@ -100,13 +100,18 @@ def init_params(model: NavModel, key: jax.Array, scenes):
                         scenes.appearance_dim)
 
 
+def dummy_inputs(num_categories: int, global_dim: int, appearance_dim: int) -> ModelInputs:
+    """Zero ModelInputs of batch 1 with the given feature widths (what init traces)."""
+    C = num_categories
+    return ModelInputs(jnp.zeros((1, FEATURE_GRID, FEATURE_GRID, global_dim)),
+                       jnp.zeros((1, C, appearance_dim)), jnp.zeros((1, C, 4)),
+                       jnp.zeros((1, C)), jnp.zeros((1, C)), jnp.zeros((1, 6)))
+
+
 @partial(jax.jit, static_argnums=(0, 2, 3, 4))
 def _init_params(model: NavModel, key: jax.Array, num_categories: int, global_dim: int,
                  appearance_dim: int):
-    C = num_categories
-    inputs = ModelInputs(jnp.zeros((1, 7, 7, global_dim)),
-                         jnp.zeros((1, C, appearance_dim)), jnp.zeros((1, C, 4)),
-                         jnp.zeros((1, C)), jnp.zeros((1, C)), jnp.zeros((1, 6)))
+    inputs = dummy_inputs(num_categories, global_dim, appearance_dim)
     return model.init({"params": key}, inputs, model.initial_carry(1))
 
 
