@@ -166,8 +166,12 @@ def _quiet_failed_reads():
 
 
 def _is_read_echo(exc: BaseException | None, tb, obj=None) -> bool:
+    """Whether an exception comes from orbax reading a damaged checkpoint: orbax in its
+    traceback, or tensorstore's error for a checkpoint's OCDBT database (a read future
+    has no Python traceback), or the closed event loop the reads report."""
     text = f"{obj!r} {exc!r} " + "".join(traceback.format_tb(tb)) if tb else f"{obj!r} {exc!r}"
-    return "orbax" in text or "_read_array_index" in text or "Event loop is closed" in text
+    return any(mark in text for mark in ("orbax", "_read_array_index", "in OCDBT database",
+                                         "Event loop is closed"))
 
 
 def _drop_read_echoes() -> None:
@@ -192,8 +196,9 @@ def _drop_read_echoes() -> None:
 
 
 def _not_a_read_echo(record: logging.LogRecord) -> bool:
-    """The asyncio logger's filter: a task of orbax's reads that died with the damaged
-    checkpoint and is collected later ("Task exception was never retrieved") is dropped."""
+    """The asyncio logger's filter: a task or future of orbax's reads that died with the
+    damaged checkpoint and is collected later ("Task/Future exception was never
+    retrieved") is dropped."""
     exc, tb = record.exc_info[1:] if record.exc_info else (None, None)
     return not _is_read_echo(exc, tb, record.getMessage())
 
