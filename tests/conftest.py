@@ -13,24 +13,6 @@ from __future__ import annotations
 
 import os
 
-
-def _pin_this_worker_to_one_core() -> None:
-    """An xdist worker (pyproject's `-n auto`: one per core) runs on one core of its own,
-    set before jax starts its thread pools: each worker's XLA then sizes them to one core
-    instead of every worker spinning threads on all of them. On 2 cores this cut the CPU
-    of four heavy test files by a quarter (docs/testing.md). Subprocesses a test starts
-    inherit the core."""
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
-    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
-    if not worker.startswith("gw") or not hasattr(os, "sched_setaffinity"):
-        return
-    cores = sorted(os.sched_getaffinity(0))
-    if 1 < count <= len(cores):
-        os.sched_setaffinity(0, {cores[int(worker[2:]) % len(cores)]})
-
-
-_pin_this_worker_to_one_core()
-
 import numpy as np
 import pytest
 
