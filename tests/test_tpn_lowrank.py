@@ -182,6 +182,12 @@ def test_train_mode_is_dropout_during_the_tpn_evaluation(setup, test_split):
     off = probs(0.0, False)
     np.testing.assert_array_equal(probs(0.0, True), off)
     np.testing.assert_array_equal(probs(0.5, False), off)
+    # without dropout applied those are one policy, so one compiled step
+    plain = get_tpn_config(scope="all", tpn_lr=0.1).test_time()
+    train = get_tpn_config(scope="all", tpn_lr=0.1, tpn_train_mode=True).test_time()
+    assert tpn_policy(model, tpn, train, "x", 0.0) is tpn_policy(model, tpn, plain, "x", 0.5) \
+        is tpn_policy(model, tpn, plain, "x", 0.0)
+    assert tpn_policy(model, tpn, train, "x", 0.5) is not tpn_policy(model, tpn, plain, "x")
     on = probs(0.5, True)
     assert np.abs(on - off).max() > 1e-3
     np.testing.assert_array_equal(probs(0.5, True), on)          # deterministic per key

@@ -92,11 +92,22 @@ def fast_weights(model, cfg: TestTime, base_params, impl: str = "auto"):
     return LowRankFastWeights(model, make_plan(base_params, cfg.scope, update_slots(cfg)))
 
 
-@compiled_once
 def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float = 0.0,
                impl: str = "auto") -> Policy:
     """policy_params = {"base": navigation variables, "tpn": TPN variables}. `dropout`:
-    the navigation model's rate, used with cfg.tpn_train_mode only."""
+    the navigation model's rate, used with cfg.tpn_train_mode only.
+
+    Where no dropout is applied (train mode off, or a rate of 0: an all-ones mask) the
+    policy is the one without train mode and rate, so those spellings share one compiled
+    evaluation (compile_cache.py)."""
+    if not cfg.tpn_train_mode or dropout == 0:
+        cfg, dropout = dataclasses.replace(cfg, tpn_train_mode=False), 0.0
+    return _tpn_policy(model, tpn, cfg, name, dropout, impl)
+
+
+@compiled_once
+def _tpn_policy(model, tpn: TPN, cfg: TestTime, name: str, dropout: float,
+                impl: str) -> Policy:
     def init(batch, params):
         fw = fast_weights(model, cfg, params["base"], impl)
         size = longest_episode()
