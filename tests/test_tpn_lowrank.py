@@ -16,8 +16,8 @@ from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import build_model, init_params, model_inputs
 from orgnav_jax.tpn.config import get_tpn_config, tpn_overrides_from_args
 from orgnav_jax.tpn.lowrank import SLOT_BLOCK, make_plan, plan_floats
-from orgnav_jax.tpn.test_time import (build_tpn, default_batch_size, fast_weights,
-                                   init_tpn_params, tpn_policy)
+from orgnav_jax.tpn.test_time import (_tpn_policy, build_tpn, default_batch_size,
+                                   fast_weights, init_tpn_params, tpn_policy)
 from orgnav_jax.training.config import get_config
 
 B = 3
@@ -173,14 +173,16 @@ def test_train_mode_is_dropout_during_the_tpn_evaluation(setup, test_split):
     obs = observations(test_split, 3, deadlock=[True, False, True])
     fresh = [[True] * B] + [[False] * B] * 2
 
-    def probs(dropout, train_mode):
+    def probs(dropout, train_mode, make=tpn_policy):
         cfg = get_tpn_config(scope="all", tpn_lr=0.1, tpn_train_mode=train_mode).test_time()
-        carries = drive(tpn_policy(model, tpn, cfg, "x", dropout), pparams, test_split, obs,
-                        fresh)
+        carries = drive(make(model, tpn, cfg, "x", dropout, "auto"), pparams, test_split,
+                        obs, fresh)
         return np.stack([np.asarray(c.memory.prev_probs) for c in carries])
 
     off = probs(0.0, False)
-    np.testing.assert_array_equal(probs(0.0, True), off)
+    # the train-mode program itself (not the shared policy) with a rate of 0: what lets
+    # tpn_policy hand out the plain policy for it
+    np.testing.assert_array_equal(probs(0.0, True, make=_tpn_policy), off)
     np.testing.assert_array_equal(probs(0.5, False), off)
     # without dropout applied those are one policy, so one compiled step
     plain = get_tpn_config(scope="all", tpn_lr=0.1).test_time()
