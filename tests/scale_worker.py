@@ -20,7 +20,7 @@ if "--xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from helpers import small_cfg  # noqa: E402  (tests/ is this script's directory)
+from helpers import CHUNK, small_cfg  # noqa: E402  (tests/ is this script's directory)
 
 
 def save_leaves(path, tree):
@@ -89,6 +89,10 @@ def task_runs(out, scenes_dir):
     res["moved_chunks"] = moved["chunks"]
     res["moved_fresh_devices"] = len(moved["runner"].fresh.sharding.device_set)
     save_leaves(f"{out}/one_then_two.npz", moved["runner"])
+    # a finished 2-chunk run (its budget ends on a val chunk; devices 0: all of a process's
+    # own) that the two-process test resumes as two processes with a 4-chunk budget
+    assert loop.train(small_cfg(scenes_dir, f"{out}/half2", total_env_steps=2 * CHUNK, **KW),
+                      progress=False)["chunks"] == 2
     with open(f"{out}/result.json", "w") as f:
         json.dump(res, f)
 
