@@ -4,7 +4,7 @@ cli_error (a CLI's one-line error and exit code 2); the number of xdist workers.
 
 No session-wide on-disk jit cache is set up: on 2 cores, looking every compile up in one
 and writing it there cost more than the few programs a test's subprocess could read back
-(docs/testing.md; the two-process test gives its own four processes one).
+(docs/testing.md).
 In one process jit's own cache serves a repeat; a cache the caller sets
 (JAX_COMPILATION_CACHE_DIR) is used as is.
 """
