@@ -99,7 +99,7 @@ def test_the_sharded_chunk_is_data_parallel(chunk_result):
 
 def test_kill_and_resume_on_two_devices_equals_an_uninterrupted_run(runs_result):
     out, r = runs_result
-    assert r["resumed2_chunks"] == 4
+    assert r["killed2_chunks"] == 2 and r["resumed2_chunks"] == 4
     for a, b in zip(leaves(out / "full2.npz"), leaves(out / "resumed2.npz")):
         np.testing.assert_array_equal(a, b)
     log = [json.loads(line) for line in (out / "killed2" / "metrics.jsonl").open()]
@@ -122,13 +122,21 @@ def test_a_two_device_run_loads_in_a_one_device_process(runs_result):
     alone, the latest-checkpoint path of load_run_model)."""
     from orgnav_jax.training.runs import load_run_model
     out, _ = runs_result
-    _, latest, _ = load_run_model(out / "full2", best=False)
-    saved = leaves(out / "full2.npz")        # RunnerState leaves: params first
-    got = [np.asarray(x) for x in jax.tree_util.tree_leaves(latest)]
-    for a, b in zip(got, saved[:len(got)]):
+    got = latest_params_and_saved(out / "full2", out / "full2.npz")
+    for a, b in got:
         np.testing.assert_array_equal(a, b)
     _, best, _ = load_run_model(out / "full2", best=True)
     assert len(jax.tree_util.tree_leaves(best)) == len(got)
+
+
+def latest_params_and_saved(run_dir, npz) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Pairs (leaf of the run's latest checkpointed parameters, read in this 1-device
+    process; the same leaf of a runner saved by save_leaves: RunnerState leaves start
+    with the parameters)."""
+    from orgnav_jax.training.runs import load_run_model
+    _, latest, _ = load_run_model(run_dir, best=False)
+    got = [np.asarray(x) for x in jax.tree_util.tree_leaves(latest)]
+    return list(zip(got, leaves(npz)[:len(got)]))
 
 
 def _cli(args, tmp_path) -> subprocess.CompletedProcess:
@@ -315,7 +323,7 @@ def printed(proc) -> list[str]:
     return [line for line in proc.stdout.splitlines() if not line.startswith("[Gloo]")]
 
 
-@pytest.mark.slow      # about half a minute: two process starts, each compiling the chunk
+@pytest.mark.slow      # ~30 s alone: two process starts, each compiling the chunk
 def test_two_processes_resume_a_run_and_write_one_set_of_logs(tmp_path, runs_result):
     """2 processes x 1 CPU device (jax.distributed, gloo) resume, as one 2-device mesh, a
     copy of a finished 2-chunk run that one process saved on 2 devices, extending its
@@ -325,8 +333,8 @@ def test_two_processes_resume_a_run_and_write_one_set_of_logs(tmp_path, runs_res
     back in this 1-device process) holds that run's parameters (float tolerance). (One
     job, not a fresh one and its resume: each 2-process job costs ~45 CPU-seconds of the
     suite; docs/testing.md.)"""
-    from orgnav_jax.training.runs import load_run_model
-    out, _ = runs_result                      # the worker's runs: the same computation
+    out, r = runs_result                      # the worker's runs: the same computation
+    assert r["half2_chunks"] == 2
     run = shutil.copytree(out / "half2", tmp_path / "run")
     procs = two_processes(["--resume", "--run-dir", run, "--total-env-steps", 1024,
                            "--no-test", "--quiet"], tmp_path)
@@ -337,10 +345,7 @@ def test_two_processes_resume_a_run_and_write_one_set_of_logs(tmp_path, runs_res
     assert_records_close(records(run, "train"), records(out / "full2", "train"))
     assert_records_close(records(run, "val"), records(out / "full2", "val"))
     assert json.loads((run / "config.json").read_text())["total_env_steps"] == 1024
-    _, latest, _ = load_run_model(run, best=False)
-    saved = leaves(out / "full2.npz")        # RunnerState leaves: params first
-    got = [np.asarray(x) for x in jax.tree_util.tree_leaves(latest)]
-    for a, b in zip(got, saved[:len(got)]):
+    for a, b in latest_params_and_saved(run, out / "full2.npz"):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
 
 

@@ -180,10 +180,10 @@ def test_train_mode_is_dropout_during_the_tpn_evaluation(setup, test_split):
         return np.stack([np.asarray(c.memory.prev_probs) for c in carries])
 
     off = probs(0.0, False)
-    # the train-mode program itself (not the shared policy) with a rate of 0: what lets
-    # tpn_policy hand out the plain policy for it
+    # the programs themselves (not the shared policy): train mode at a rate of 0, and a
+    # rate without train mode, equal the plain policy; what lets tpn_policy hand it out
     np.testing.assert_array_equal(probs(0.0, True, make=_tpn_policy), off)
-    np.testing.assert_array_equal(probs(0.5, False), off)
+    np.testing.assert_array_equal(probs(0.5, False, make=_tpn_policy), off)
     # without dropout applied those are one policy, so one compiled step
     plain = get_tpn_config(scope="all", tpn_lr=0.1).test_time()
     train = get_tpn_config(scope="all", tpn_lr=0.1, tpn_train_mode=True).test_time()
