@@ -4,6 +4,13 @@
     inputs = model_inputs(scenes, obs)                     # batched Observation -> arrays
     logits, value, carry, h = model.apply(params, inputs, carry)
     gates = model.apply(params, inputs, method=model.embed)    # the non-recurrent part
+
+The previous action enters as the previous step's action probabilities (the release's
+`agents/agent.py:176,184`: zeros at an episode start), kept in the carry (NavCarry.probs)
+and written into the inputs by `previous_action` (`prev_action="onehot"`: the env's
+one-hot of the action taken, as before issue 39). They enter as data: no gradient flows
+through them into the previous step (the release backpropagates through them; here the
+non-recurrent part runs once over a whole rollout, docs/training.md).
 """
 
 from __future__ import annotations
@@ -15,8 +22,11 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from flax import struct
+
 from orgnav_jax.constants import FEATURE_GRID, IMAGE_SIZE
 from orgnav_jax.models.encoders import BaselineEncoder, WordEmbeddingEncoder
+from orgnav_jax.models.init import release_init
 from orgnav_jax.models.org import ORGEncoder, ReleasedORGEncoder, dsp_from_scenes
 from orgnav_jax.models.trunk import Trunk
 from orgnav_jax.scenes.sceneset.features import gather_features
@@ -28,12 +38,24 @@ class ModelInputs(NamedTuple):
     box: jax.Array          # (B, C, 4) detection boxes scaled to [0, 1]
     conf: jax.Array         # (B, C) confidences
     target: jax.Array       # (B, C) target one-hot
-    prev_action: jax.Array  # (B, 6) previous action one-hot
-    drop: jax.Array | None = None   # (B, 7, 7, glob_channels) dropout mask; None = no dropout
+    prev_action: jax.Array  # (B, 6) previous action: probabilities (or a one-hot)
+    drop: jax.Array | None = None   # (B, 7, 7, dropout channels) mask; None = no dropout
+
+
+PREV_ACTION_INPUTS = ("probs", "onehot")
+
+
+@struct.dataclass
+class NavCarry:
+    """The recurrent state: lstm, per layer (c, h), each (B, hidden); probs (B, 6), the
+    previous step's action probabilities (zeros at an episode start)."""
+    lstm: tuple
+    probs: jax.Array
 
 
 def model_inputs(scenes, obs) -> ModelInputs:
-    """Gather a batched env.Observation's large features from the SceneSet (inside jit)."""
+    """Gather a batched env.Observation's large features from the SceneSet (inside jit).
+    prev_action is the env's one-hot; `previous_action` puts the model's input there."""
     glob, app, box, conf = gather_features(scenes, obs.state)   # global flat states
     return ModelInputs(glob, app, box / IMAGE_SIZE, conf, obs.target, obs.prev_action)
 
@@ -41,26 +63,43 @@ def model_inputs(scenes, obs) -> ModelInputs:
 class NavModel(nn.Module):
     encoder: nn.Module
     trunk: Trunk
+    prev_action: str = "probs"      # "probs" (release) | "onehot" (module docstring)
 
     def embed(self, inputs: ModelInputs, train: bool = False):
-        """The non-recurrent part: inputs (B, ...) -> first LSTM layer's input gates (B, 4H)."""
+        """The non-recurrent part: inputs (B, ...) -> first LSTM layer's input gates (B, 4H).
+        inputs.prev_action is used as given (see previous_action)."""
         maps = self.encoder(inputs.app, inputs.box, inputs.conf, inputs.target, train)
         return self.trunk.embed(inputs.glob, maps, inputs.prev_action, inputs.drop)
 
-    def recur(self, gates, carry):
-        """Input gates (B, 4H), carry -> (logits (B, 6), value (B,), carry, LSTM output)."""
-        return self.trunk.recur(gates, carry)
+    def recur(self, gates, carry: NavCarry):
+        """Input gates (B, 4H), carry -> (logits (B, 6), value (B,), carry, LSTM output);
+        the new carry holds this step's action probabilities."""
+        logits, value, lstm, h = self.trunk.recur(gates, carry.lstm)
+        probs = jax.lax.stop_gradient(jax.nn.softmax(logits.astype(jnp.float32)))
+        return logits, value, NavCarry(lstm, probs), h
 
-    def __call__(self, inputs: ModelInputs, carry, train: bool = False):
-        """-> (logits (B, 6), value (B,), new carry, LSTM output (B, hidden))."""
+    def __call__(self, inputs: ModelInputs, carry: NavCarry, train: bool = False):
+        """One step from the env's inputs -> (logits (B, 6), value (B,), new carry, LSTM
+        output (B, hidden))."""
+        inputs = inputs._replace(prev_action=previous_action(self, inputs.prev_action, carry))
         return self.recur(self.embed(inputs, train), carry)
 
-    def initial_carry(self, batch: int):
-        return self.trunk.initial_carry(batch)
+    def initial_carry(self, batch: int) -> NavCarry:
+        return NavCarry(self.trunk.initial_carry(batch), jnp.zeros((batch, 6), jnp.float32))
 
     def dropout_shape(self, batch: int) -> tuple[int, ...]:
         """Shape of the trunk's dropout mask for a batch (see models.trunk.dropout_mask)."""
-        return (batch, FEATURE_GRID, FEATURE_GRID, self.trunk.glob_channels)
+        return (batch, FEATURE_GRID, FEATURE_GRID, self.trunk.dropout_channels())
+
+
+def previous_action(model: NavModel, onehot: jax.Array, carry: NavCarry) -> jax.Array:
+    """The previous-action input (B, 6) of a step: the carry's probabilities (release), or
+    the env's one-hot `onehot` (prev_action="onehot"). Pure: usable outside apply (the
+    rollout stores it in its trajectory so that the loss's replay sees the same input)."""
+    if model.prev_action not in PREV_ACTION_INPUTS:
+        raise ValueError(f"prev_action {model.prev_action!r}: expected one of "
+                         f"{list(PREV_ACTION_INPUTS)}")
+    return carry.probs if model.prev_action == "probs" else onehot
 
 
 def compute_dtype(cfg):
@@ -74,7 +113,8 @@ ENCODERS: dict[str, Callable] = {
     "baseline": lambda cfg, scenes: BaselineEncoder(dtype=compute_dtype(cfg)),
     "we": lambda cfg, scenes: WordEmbeddingEncoder(dtype=compute_dtype(cfg)),
     "org": lambda cfg, scenes: ORGEncoder(dtype=compute_dtype(cfg)),
-    "org_released": lambda cfg, scenes: ReleasedORGEncoder(dtype=compute_dtype(cfg)),
+    "org_released": lambda cfg, scenes: ReleasedORGEncoder(
+        wiring="release" if cfg.net == "release" else "alternate", dtype=compute_dtype(cfg)),
     "dsp": lambda cfg, scenes: dsp_from_scenes(scenes, compute_dtype(cfg)),
 }
 
@@ -86,8 +126,8 @@ def build_model(cfg, scenes) -> NavModel:
         raise ValueError(f"unknown model {cfg.model!r}: expected one of {sorted(ENCODERS)}")
     trunk = Trunk(glob_channels=cfg.glob_channels, action_embed=cfg.action_embed,
                   fuse_channels=cfg.fuse_channels, hidden=cfg.hidden,
-                  lstm_layers=cfg.lstm_layers, dtype=compute_dtype(cfg))
-    return NavModel(ENCODERS[cfg.model](cfg, scenes), trunk)
+                  lstm_layers=cfg.lstm_layers, dtype=compute_dtype(cfg), form=cfg.net)
+    return NavModel(ENCODERS[cfg.model](cfg, scenes), trunk, cfg.prev_action)
 
 
 def init_params(model: NavModel, key: jax.Array, scenes):
@@ -112,7 +152,10 @@ def dummy_inputs(num_categories: int, global_dim: int, appearance_dim: int) -> M
 def _init_params(model: NavModel, key: jax.Array, num_categories: int, global_dim: int,
                  appearance_dim: int):
     inputs = dummy_inputs(num_categories, global_dim, appearance_dim)
-    return model.init({"params": key}, inputs, model.initial_carry(1))
+    params = model.init({"params": key}, inputs, model.initial_carry(1))
+    if model.trunk.form == "release":          # the release's initialisation (models/init.py)
+        params = release_init(params, jax.random.fold_in(key, 1))
+    return params
 
 
 # The feature widths a model is built for are in its parameters' shapes: the trunk's

@@ -10,8 +10,10 @@ ORGEncoder (paper, Sec. 3.2), per sample, X = [box, conf, target] (C, 6), F = ap
 Z's rows index the attending category, its columns (W's outputs) the attended one, so a
 relabelling of the categories by a permutation P maps A -> P A P^T and W -> W P^T.
 
-ReleasedORGEncoder (authors' code): relation R (C, C) computed per step from X
-(6 -> C, then four C -> C ReLU layers); F^ = R^T F; [F^, X] -> Dense 128 ReLU -> Dense 49.
+ReleasedORGEncoder (authors' code, `models/graphmodel.py:74-85`): R1 = ReLU(X W1) (C, C)
+(rows: categories, columns: W1's units); transposed once, then four C -> C ReLU layers
+over what is now the category axis: R = MLP(R1^T) (C, C) (rows: W1's units j); F^ = R^T F
+pairs unit j with category row j of F; [F^, X] -> Dense 128 ReLU -> Dense 49.
 
 DSPEncoder (the paper's D-SP): a GCN over a FIXED prior graph from co-occurrence
 statistics of the training rooms (cooccurrence_adjacency):
@@ -64,29 +66,38 @@ class ORGEncoder(nn.Module):
 
 
 class ReleasedORGEncoder(nn.Module):
-    """The authors' release: R (B, C, C) = MLP of X (6 -> C, then four C -> C, ReLU after
-    each); F^ = R^T F (B, C, d); [F^, X] -> Dense 128 ReLU -> Dense 49.
+    """The authors' release (module docstring): R = MLP(ReLU(X W1)^T) (B, C, C), the four
+    C -> C layers all over the category axis; F^ = R^T F (B, C, d); [F^, X] -> Dense 128
+    ReLU -> Dense 49.
 
-    alternate=True applies the C -> C layers alternately over the category axis and the
-    feature axis (transposing between layers, as the release does as far as we know), so
-    R mixes information across categories; False applies all of them over the last axis."""
+    wiring="alternate" is the form this project used before issue 39 (config version <= 6,
+    kept so those runs evaluate as trained): the C -> C layers alternately over the
+    category and the feature axis, F^ summed over the category axis."""
     hidden: int = 128
-    alternate: bool = True
+    wiring: str = "release"    # "release" | "alternate"
     dtype: Any = None
 
     @nn.compact
     def __call__(self, app, box, conf, target, train: bool = False):
+        if self.wiring not in ("release", "alternate"):
+            raise ValueError(f"wiring {self.wiring!r}: expected 'release' or 'alternate'")
         C, dt = app.shape[-2], self.dtype
         x = location_features(box, conf, target)                     # (B, C, 6)
-        r = nn.relu(nn.Dense(C, name="relation_1", dtype=dt)(x))     # (B, C, C)
-        for i in range(2, 6):
-            transpose = self.alternate and i % 2 == 0
-            if transpose:
-                r = jnp.swapaxes(r, -1, -2)
-            r = nn.relu(nn.Dense(C, name=f"relation_{i}", dtype=dt)(r))
-            if transpose:
-                r = jnp.swapaxes(r, -1, -2)
-        f_hat = jnp.einsum("bij,bid->bjd", r, cast(app, dt))         # R^T F: (B, C, d)
+        r = nn.relu(nn.Dense(C, name="relation_1", dtype=dt)(x))     # (B, C, C): [i, j]
+        if self.wiring == "release":
+            r = jnp.swapaxes(r, -1, -2)                              # [j, i]
+            for i in range(2, 6):
+                r = nn.relu(nn.Dense(C, name=f"relation_{i}", dtype=dt)(r))   # [j, k]
+            f_hat = jnp.einsum("bjk,bjd->bkd", r, cast(app, dt))     # (B, C, d)
+        else:
+            for i in range(2, 6):
+                transpose = i % 2 == 0
+                if transpose:
+                    r = jnp.swapaxes(r, -1, -2)
+                r = nn.relu(nn.Dense(C, name=f"relation_{i}", dtype=dt)(r))
+                if transpose:
+                    r = jnp.swapaxes(r, -1, -2)
+            f_hat = jnp.einsum("bij,bid->bjd", r, cast(app, dt))     # R^T F: (B, C, d)
         h = jnp.concatenate([f_hat, cast(x, dt)], axis=-1)
         h = nn.relu(nn.Dense(self.hidden, name="hidden", dtype=dt)(h))
         return nn.Dense(MAP_CELLS, name="to_map", dtype=dt)(h)

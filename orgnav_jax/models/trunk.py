@@ -1,11 +1,16 @@
-"""The navigation trunk shared by every model (paper / authors' release).
+"""The navigation trunk shared by every model, as the authors' release computes it.
 
-global map (B, 7, 7, G) -> Dense(glob_channels) ReLU [dropout: times a given mask]
-previous action (B, 6)  -> Dense(action_embed), tiled to 7x7
-category maps (B, C, 49) -> 7x7xC
-concat -> Dense(fuse_channels) ReLU -> flatten (B, 49*fuse) -> LSTM x layers (hidden)
--> actor Dense(6) logits; critic Dense(64) ReLU Dense(1).
-1x1 convolutions are written as Dense over channels (much faster on CPU under scan).
+global map (B, 7, 7, G)  -> Dense(glob_channels) ReLU [dropout]
+previous action (B, 6)   -> Dense(action_embed) ReLU, tiled to 7x7
+category maps (B, C, 49) -> ReLU, 7x7xC
+concat -> Dense(fuse_channels) ReLU [dropout] -> flatten (B, 49*fuse) -> LSTM x layers
+-> actor Dense(6) logits; critic Dense(64) Dense(1) (linear: no ReLU between).
+(release `models/basemodel.py:66-95`; the previous action is the previous step's action
+probabilities, models/navmodel.py.) 1x1 convolutions are written as Dense over channels
+(much faster on CPU under scan). `form="pre_parity"` is the trunk this project used
+before issue 39 (no ReLU on the category maps or the action embedding, a ReLU inside
+the critic, one dropout site): runs of config version <= 6 were trained with it and keep
+it (docs/training.md).
 
 The trunk is split in two so that training can batch the non-recurrent part over time:
 `embed` maps one step's inputs to the first LSTM layer's input gates (B, 4*hidden) and
@@ -21,10 +26,12 @@ gates, the cell state and the carry stay float32, and the actor and critic heads
 float32 (their softmax and value regression want the precision; they are tiny). With
 dtype None (float32) the program is the plain float32 one.
 
-Dropout (the release's 0.25 after the global map's 1x1 layer) is an explicit mask input,
-not flax's rng-driven nn.Dropout: the rollout draws the mask of each step from a key it
-stores in the trajectory, and the loss's replay rebuilds the very same masks
-(`dropout_mask`). Without a mask (evaluation) the trunk is deterministic.
+Dropout (the release's 0.25, element-wise, after the global map's 1x1 layer and again
+after the fusion 1x1 layer) is an explicit mask input, not flax's rng-driven nn.Dropout:
+one mask (B, 7, 7, glob_channels + fuse_channels) holds both sites' masks (the
+pre-parity form reads only the first glob_channels); the rollout draws the mask of each
+step from a key it stores in the trajectory, and the loss's replay rebuilds the very
+same masks (`dropout_mask`). Without a mask (evaluation) the trunk is deterministic.
 """
 
 from __future__ import annotations
@@ -87,13 +94,17 @@ class LSTMGates(nn.Module):
         return (c, h), h
 
 
+TRUNK_FORMS = ("release", "pre_parity")
+
+
 class Trunk(nn.Module):
     glob_channels: int = 64
     action_embed: int = 10
     fuse_channels: int = 64
     hidden: int = 512
-    lstm_layers: int = 1
+    lstm_layers: int = 2
     dtype: Any = None          # compute dtype below the heads (None: float32)
+    form: str = "release"      # "release" | "pre_parity" (module docstring)
 
     def setup(self):
         self.global_1x1 = nn.Dense(self.glob_channels, dtype=self.dtype)
@@ -106,20 +117,35 @@ class Trunk(nn.Module):
         self.critic_hidden = nn.Dense(64)
         self.critic = nn.Dense(1)
 
+    @property
+    def release(self) -> bool:
+        if self.form not in TRUNK_FORMS:
+            raise ValueError(f"trunk form {self.form!r}: expected one of {list(TRUNK_FORMS)}")
+        return self.form == "release"
+
+    def dropout_channels(self) -> int:
+        """Channels of the dropout mask: both sites' (release) or the global map's."""
+        return self.glob_channels + (self.fuse_channels if self.release else 0)
+
     def embed(self, glob, cat_maps, prev_action, drop=None):
-        """(B, 7, 7, G), (B, C, 49), (B, 6), dropout mask (B, 7, 7, glob_channels) or None
-        -> first-layer LSTM input gates (B, 4*hidden)."""
+        """(B, 7, 7, G), (B, C, 49), (B, 6), dropout mask (B, 7, 7, dropout_channels())
+        or None -> first-layer LSTM input gates (B, 4*hidden)."""
         B = glob.shape[0]
+        drop = None if drop is None else cast(drop, self.dtype)
         g = nn.relu(self.global_1x1(glob))
         if drop is not None:
-            g = g * cast(drop, self.dtype)
+            g = g * drop[..., :self.glob_channels]
         a = self.action_dense(prev_action)
+        c = cast(cat_maps, self.dtype)
+        if self.release:
+            a, c = nn.relu(a), nn.relu(c)
         a = jnp.broadcast_to(a[:, None, None, :], (B, FEATURE_GRID, FEATURE_GRID, a.shape[-1]))
-        c = jnp.moveaxis(cast(cat_maps, self.dtype), 1, -1).reshape(
-            B, FEATURE_GRID, FEATURE_GRID, -1)
+        c = jnp.moveaxis(c, 1, -1).reshape(B, FEATURE_GRID, FEATURE_GRID, -1)
         x = jnp.concatenate([g, c, a], axis=-1)
-        x = nn.relu(self.fuse_1x1(x)).reshape(B, -1)
-        return self.lstm[0].project(x)
+        x = nn.relu(self.fuse_1x1(x))
+        if drop is not None and self.release:
+            x = x * drop[..., self.glob_channels:]
+        return self.lstm[0].project(x.reshape(B, -1))
 
     def recur(self, gates, carry):
         """First-layer input gates (B, 4*hidden), carry -> (logits (B, 6), value (B,),
@@ -130,7 +156,8 @@ class Trunk(nn.Module):
             layer_carry, x = self.lstm[i].recur(layer_gates, layer_carry)
             new_carry.append(layer_carry)
         logits = self.actor(x)
-        value = self.critic(nn.relu(self.critic_hidden(x)))[:, 0]
+        v = self.critic_hidden(x)
+        value = self.critic(v if self.release else nn.relu(v))[:, 0]
         return logits, value, tuple(new_carry), x
 
     def __call__(self, glob, cat_maps, prev_action, carry):

@@ -28,6 +28,9 @@ V3_DEFAULTS = {"devices": 0, "dtype": "float32"}
 # Fields a version-5 (or older) config lacks: those runs are not SAVN runs (issue 25).
 V5_DEFAULTS = {"savn": False, "savn_steps": 6, "savn_inner_lr": 1e-4,
                "savn_inner_steps": 4, "savn_first_order": False}
+# Fields a version-6 (or older) config lacks: those runs were trained with the networks
+# before parity with the release (issue 39): they keep them, and evaluate as trained.
+V6_DEFAULTS = {"net": "pre_parity", "prev_action": "onehot"}
 
 # String modes are Literal types; their values (typing.get_args) are what validate
 # accepts, and every dispatch on them is a dict that raises on other values
@@ -37,9 +40,14 @@ ILStep = Literal["cause", "state"]   # supervise the action that led into a dead
                                      # the action taken at the deadlock state
 ILNorm = Literal["per_step", "masked_mean"]   # sum / (T*N) (as the release), or mean over
                                               # the IL steps
+Net = Literal["release", "pre_parity"]   # the networks as the release computes them, or as
+                                         # this project did before issue 39 (docs/training.md)
+PrevAction = Literal["probs", "onehot"]  # previous step's action probabilities (release), or
+                                         # a one-hot of the action taken
 DType = Literal["float32", "bfloat16"]   # the compute dtype of matmuls and activations
                                        # (parameters and optimizer state stay float32)
 IL_MODES, IL_STEPS, IL_NORMS = get_args(ILMode), get_args(ILStep), get_args(ILNorm)
+NETS, PREV_ACTIONS = get_args(Net), get_args(PrevAction)
 DTYPES = get_args(DType)
 
 
@@ -59,8 +67,11 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     action_embed: int = 10
     fuse_channels: int = 16
     hidden: int = 128
-    lstm_layers: int = 1
-    dropout: float = 0.0              # on the global map's 1x1 layer (release: 0.25)
+    lstm_layers: int = 2              # the release's nn.LSTM(3136, 512, 2)
+    dropout: float = 0.0              # element-wise, after the global map's 1x1 layer and
+                                      # the fusion 1x1 layer (release: 0.25 at both)
+    net: Net = "release"              # trunk, released ORG wiring and init (docs/training.md)
+    prev_action: PrevAction = "probs"
     # imitation (trial-driven IL): none | deadlock | all | failed (see IL_MODES, IL_STEPS)
     il: ILMode = "none"
     il_weight: float = 1.0
@@ -123,7 +134,8 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
             raise ValueError(f"config field 'model': unknown model {self.model!r}, expected "
                              f"one of {sorted(ENCODERS)}")
         for name, allowed in (("il", IL_MODES), ("il_step", IL_STEPS),
-                              ("il_norm", IL_NORMS), ("dtype", DTYPES)):
+                              ("il_norm", IL_NORMS), ("dtype", DTYPES), ("net", NETS),
+                              ("prev_action", PREV_ACTIONS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"config field {name!r}: {getattr(self, name)!r}, expected "
                                  f"one of {list(allowed)}")
@@ -242,8 +254,10 @@ def load_config(run_dir: str | Path) -> TrainConfig:
     """The TrainConfig saved in a training run directory (run_dir.read_config)."""
     from orgnav_jax.training.run_dir import read_config
     return read_config(run_dir, TrainConfig, "nav", READABLE_VERSIONS,
-                       {2: {**V2_DEFAULTS, **V3_DEFAULTS, **V5_DEFAULTS},
-                        3: {**V3_DEFAULTS, **V5_DEFAULTS}, 4: V5_DEFAULTS, 5: V5_DEFAULTS},
+                       {2: {**V2_DEFAULTS, **V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS},
+                        3: {**V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS},
+                        4: {**V5_DEFAULTS, **V6_DEFAULTS}, 5: {**V5_DEFAULTS, **V6_DEFAULTS},
+                        6: V6_DEFAULTS},
                        OLD_RENAMES)
 
 

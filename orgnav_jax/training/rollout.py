@@ -15,7 +15,7 @@ from flax import struct
 
 from orgnav_jax import env
 from orgnav_jax.constants import DONE
-from orgnav_jax.models import dropout_mask, model_inputs, reset_carry
+from orgnav_jax.models import dropout_mask, model_inputs, previous_action, reset_carry
 
 
 @struct.dataclass
@@ -33,7 +33,7 @@ class RunnerState:
 @struct.dataclass
 class Trajectory:
     """(T, N) per-step arrays (obs is a batched Observation with leading (T, N))."""
-    obs: env.Observation
+    obs: env.Observation      # prev_action: the model's previous-action input at the step
     fresh: jax.Array
     action: jax.Array
     reward: jax.Array
@@ -88,8 +88,9 @@ def rollout(model, runner: RunnerState, scenes, env_params: env.EnvParams, lengt
     def body(carry, _):
         runner, stats = carry
         key, k_act, k_env, k_drop = jax.random.split(runner.key, 4)
-        obs = v_observe(runner.env_state, scenes)
         lstm = reset_carry(runner.carry, runner.fresh)
+        obs = v_observe(runner.env_state, scenes)
+        obs = obs.replace(prev_action=previous_action(model, obs.prev_action, lstm))
         logits, value, lstm, _ = model.apply(
             runner.params, train_inputs(model, scenes, obs, k_drop, dropout), lstm)
         action = jax.random.categorical(k_act, logits).astype(jnp.int32)

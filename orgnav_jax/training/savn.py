@@ -40,7 +40,7 @@ from flax import struct, traverse_util
 from orgnav_jax import env
 from orgnav_jax.compile_cache import compiled_once
 from orgnav_jax.evaluation import Policy
-from orgnav_jax.models import init_params, model_inputs, reset_carry
+from orgnav_jax.models import init_params, model_inputs, previous_action, reset_carry
 from orgnav_jax.training.losses import gae
 from orgnav_jax.training.rollout import EpisodeStats
 from orgnav_jax.tree import tile, where_rows
@@ -153,7 +153,7 @@ def segment_row(model, shared, dense, ux, uh, v, carry, inputs, pert):
 
     def body(c, xs):
         g, p = xs
-        h_prev = c[0][1]
+        h_prev = c.lstm[0][1]
         g = g + (h_prev @ uh.T) @ v + p
         logits, value, c, h = model.apply(variables, g[None], _one(c), method=model.recur)
         return _unbatch(c), (logits[0], value[0], h[0], h_prev)
@@ -249,6 +249,8 @@ def savn_loss(meta, model, learned, cfg, scenes, key):
             state, lstm, running, ep_return, stats = c
             obs = v_observe(state, scenes)
             inputs = model_inputs(scenes, obs)
+            inputs = inputs._replace(prev_action=previous_action(model, inputs.prev_action,
+                                                                 lstm))
             logits, _, _, lstm, _, _ = v_segment(
                 sh_sg, f_sg.dense, f_sg.ux, f_sg.uh, f_sg.v, lstm,
                 jax.tree_util.tree_map(lambda x: x[:, None], inputs),
@@ -376,6 +378,7 @@ def savn_policy(model, learned: LearnedLoss, k: int, inner_steps: int, inner_lr:
         pos = steps % k
         seg_lstm = where_rows(pos == 0, lstm, carry.seg_lstm)
         inputs = model_inputs(scenes, obs)
+        inputs = inputs._replace(prev_action=previous_action(model, inputs.prev_action, lstm))
         seg_inputs = jax.vmap(lambda buf, x, i: jax.tree_util.tree_map(
             lambda b, y: b.at[i].set(y), buf, x))(carry.seg_inputs, inputs, pos)
         one_step = jax.tree_util.tree_map(lambda x: x[:, None], inputs)
