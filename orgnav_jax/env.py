@@ -15,6 +15,14 @@ it), converted by start_episode: global = scenes.state_offset[scene] + local.
 Path lengths count the moving actions (MoveAhead, Rotate*, Look*), not the final Done:
 an episode's L is its number of non-Done steps and L_opt = scenes.dist at the start, so
 the expert has L = L_opt and SPL 1.
+
+Bad input. Called eagerly (concrete values), step and step_env raise ValueError for an
+action that is not an integer in 0..5 and for a state outside `scenes` (check_action,
+check_state). Under jit a value cannot raise; there an invalid action (-1, 7, 2.7, nan)
+or a state whose scene or state index lies outside `scenes` (a state of another scene
+set) is a no-op: the state comes back unchanged, reward 0, done False (no auto-reset),
+and info["invalid_action"] / info["invalid_state"] is True. Such an action is never
+aliased to a real one.
 """
 
 from __future__ import annotations
@@ -37,6 +45,23 @@ class EnvParams:
     step_penalty: float = struct.field(pytree_node=False, default=-0.01)  # paper: -0.001
     step_caps: tuple[int, ...] = struct.field(pytree_node=False, default=(30, 30, 30, 30))
     min_start_dist: int = struct.field(pytree_node=False, default=1)
+
+    def __post_init__(self):
+        """One step cap per room type (fewer would make the last cap serve the others):
+        their number is checked always (also for the traced arrays gymnax_env passes),
+        their values when they are Python numbers."""
+        caps = self.step_caps
+        if isinstance(caps, list):
+            object.__setattr__(self, "step_caps", caps := tuple(caps))
+        n = len(caps) if isinstance(caps, tuple) else np.shape(caps)
+        if n != len(ROOM_TYPES) and n != (len(ROOM_TYPES),):
+            raise ValueError(f"EnvParams field 'step_caps': expected {len(ROOM_TYPES)} caps, "
+                             f"one per room type {list(ROOM_TYPES)}, got {caps!r}")
+        if isinstance(caps, tuple) and not all(
+                isinstance(c, (int, np.integer)) and not isinstance(c, bool) and
+                1 <= c <= 2 ** 31 - 2 for c in caps):
+            raise ValueError(f"EnvParams field 'step_caps': expected integers >= 1, got "
+                             f"{list(caps)}")
 
     @classmethod
     def evaluation(cls, **kw) -> EnvParams:
@@ -89,13 +114,50 @@ def _concrete(x) -> bool:
 
 
 def check_action(action) -> None:
-    """Eager calls: a clear error for an action outside 0..5. (Under jit values are not
-    known; there the transition tables are indexed with the action clipped to 0..5.)"""
+    """Eager calls: a clear error for an action outside 0..5 (or not an integer). Under
+    jit values are not known: there an invalid action is a no-op flagged in
+    info["invalid_action"] (action_is_valid, step_env)."""
     if _concrete(action):
         a = np.asarray(action)
         if not np.issubdtype(a.dtype, np.integer) or a.size and (a.min() < 0 or a.max() >= NUM_ACTIONS):
             raise ValueError(f"action {a.tolist()} invalid: expected integers in 0..{NUM_ACTIONS - 1} "
                              f"({', '.join(ACTIONS)})")
+
+
+def action_is_valid(action) -> jax.Array:
+    """True where `action` is one of the actions 0..5: an integer in range, or a float
+    with an integral value in range (2.0 yes, 2.7, -1, 7, nan no; booleans never)."""
+    a = jnp.asarray(action)
+    if a.dtype == jnp.bool_:
+        return jnp.zeros(a.shape, bool)
+    ok = (a >= 0) & (a < NUM_ACTIONS)
+    if not jnp.issubdtype(a.dtype, jnp.integer):
+        ok = ok & (a == jnp.floor(a))
+    return ok
+
+
+def state_is_valid(state: EnvState, scenes: SceneSet) -> jax.Array:
+    """True where an EnvState can belong to `scenes`: its scene index is one of theirs and
+    its (global) state lies in that room's range. A state of another scene set whose
+    indices happen to fall in range cannot be told apart."""
+    n = scenes.state_offset.shape[0]
+    scene = jnp.clip(state.scene, 0, n - 1)
+    lo = scenes.state_offset[scene]
+    return ((state.scene >= 0) & (state.scene < n) & (state.state >= lo)
+            & (state.state < lo + scenes.state_count[scene]))
+
+
+def check_state(state: EnvState, scenes: SceneSet) -> None:
+    """Eager calls: a clear error for an EnvState whose scene or state index is outside
+    `scenes` (a state of another scene set); under jit see state_is_valid."""
+    if _concrete(state.scene) and _concrete(state.state):
+        ok = np.asarray(state_is_valid(state, scenes))
+        if not ok.all():
+            raise ValueError(
+                f"env state (scene {np.asarray(state.scene).tolist()}, state "
+                f"{np.asarray(state.state).tolist()}) is not a state of these scenes "
+                f"({scenes.num_scenes} rooms, {int(scenes.num_states)} states): a state of "
+                "another scene set?")
 
 
 def check_episode(scene, start, target, scenes: SceneSet) -> None:
@@ -173,14 +235,18 @@ def reset(key: jax.Array, scenes: SceneSet, params: EnvParams):
 def _transition(state: EnvState, action: jax.Array, scenes: SceneSet, params: EnvParams):
     """One action -> (new state, reward, done, info); see step_env."""
     check_action(action)
-    action = jnp.clip(jnp.asarray(action, jnp.int32), 0, NUM_ACTIONS - 1)
+    check_state(state, scenes)
+    ok_action = action_is_valid(action)
+    ok_state = state_is_valid(state, scenes)
+    valid = ok_action & ok_state
+    action = jnp.where(ok_action, action, 0).astype(jnp.int32)
     nxt = scenes.next_state[state.state, action]
-    is_done = action == DONE
+    is_done = (action == DONE) & valid
     success = is_done & scenes.visible[state.state, state.target]
-    failed = (nxt == state.state) & ~is_done
+    failed = (nxt == state.state) & ~is_done & valid
     steps = state.steps + 1
     cap = jnp.asarray(params.step_caps, jnp.int32)[scenes.room_type[state.scene]]
-    truncated = (steps >= cap) & ~is_done
+    truncated = (steps >= cap) & ~is_done & valid
     done = is_done | truncated
     new = state.replace(
         state=nxt, steps=steps, path_len=state.path_len + (~is_done).astype(jnp.int32),
@@ -188,11 +254,14 @@ def _transition(state: EnvState, action: jax.Array, scenes: SceneSet, params: En
         revisited=jnp.where(is_done, state.revisited, jnp.any(state.trail == nxt)),
         trail=state.trail.at[jnp.minimum(steps, state.trail.shape[0] - 1)].set(nxt),
     )
+    # an invalid action or a state of other scenes: nothing happens (module doc)
+    new = jax.tree_util.tree_map(lambda a, b: jnp.where(valid, a, b), new, state)
     reward = jnp.where(success, params.success_reward, params.step_penalty).astype(jnp.float32)
+    reward = jnp.where(valid, reward, jnp.float32(0))
     info = {"success": success, "failed": failed, "path_len": new.path_len,
-            "optimal_len": state.optimal_len, "steps": steps,
-            "revisited": new.revisited & ~is_done, "terminated": is_done,
-            "truncated": truncated}
+            "optimal_len": state.optimal_len, "steps": new.steps,
+            "revisited": new.revisited & ~is_done & valid, "terminated": is_done,
+            "truncated": truncated, "invalid_action": ~ok_action, "invalid_state": ~ok_state}
     return new, reward, done, info
 
 

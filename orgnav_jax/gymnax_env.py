@@ -23,6 +23,12 @@ for PyTorch agents), `gymnax.experimental.RolloutWrapper`. See docs/environment.
   (appearance (C, d), boxes (C, 4) in [0, 1], confidences (C,)), the target one-hot (C,)
   and the previous-action one-hot (6,). obs="flat": one float32 vector in that order
   (`OBS_PARTS`; `unflatten` splits it back); obs="dict": the same parts by name.
+- Bad input: `make`, `make_params`, `NavEnv` and `GymEnv` check what comes in from Python
+  (scene preset, split, obs mode, one step cap per room type, finite rewards; GymEnv.step
+  refuses an action outside 0..5); an eager `step` checks its action, state and params.
+  Under jit an invalid action or a state outside the params' scenes cannot raise: it is
+  a no-op (state unchanged, reward 0, not done) with info["invalid_action"] or
+  info["invalid_state"] True, never an alias of a real action.
 - terminated: the agent said Done; truncated: another action reached the room type's
   step cap (never both). info keeps orgnav_jax.env's: success, path_len, optimal_len
   (SPL = success * optimal_len / max(path_len, optimal_len)), steps, failed, revisited;
@@ -43,7 +49,7 @@ from gymnax.environments import environment, spaces
 from gymnax.wrappers.gym import GymnaxToGymWrapper
 
 from orgnav_jax import env as nav
-from orgnav_jax.constants import DONE, FEATURE_GRID, NUM_ACTIONS, NUM_CATEGORIES
+from orgnav_jax.constants import DONE, FEATURE_GRID, NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES
 from orgnav_jax.models.navmodel import model_inputs
 from orgnav_jax.scenes.synthetic.cache import device_split
 from orgnav_jax.scenes.sceneset.sceneset import SceneSet
@@ -76,8 +82,17 @@ def make_params(scenes: SceneSet, rules: nav.EnvParams | None = None) -> EnvPara
     if not isinstance(scenes, SceneSet):
         raise TypeError(f"scenes must be a SceneSet, got {type(scenes).__name__}")
     rules = nav.EnvParams() if rules is None else rules
+    if not isinstance(rules, nav.EnvParams):
+        raise TypeError(f"rules must be an orgnav_jax.env.EnvParams, got {type(rules).__name__}")
     if scenes.num_scenes == 0:
         raise ValueError("the scene set has no rooms (an empty split?)")
+    for name in ("success_reward", "step_penalty"):
+        value = getattr(rules, name)
+        if not np.isfinite(np.asarray(value, np.float64)):
+            raise ValueError(f"EnvParams field {name!r}: expected a finite number, got {value!r}")
+    if not 0 <= int(rules.min_start_dist) <= 2 ** 31 - 1:
+        raise ValueError(f"EnvParams field 'min_start_dist': expected an integer >= 0, got "
+                         f"{rules.min_start_dist!r}")
     return EnvParams(
         max_steps_in_episode=int(max(rules.step_caps)),
         # info (preset, seed) is static metadata: cleared, so sets of the same shapes share
@@ -145,10 +160,25 @@ class NavEnv(environment.Environment):
         return self._default_params
 
     def check_params(self, params: EnvParams) -> None:
-        """ValueError when concrete params' step caps exceed the trail's capacity."""
+        """ValueError unless params are this module's EnvParams with one step cap per room
+        type (shapes are known under jit too) and, when concrete, caps in
+        1..max_steps (the trail's capacity)."""
+        if not isinstance(params, EnvParams):
+            raise TypeError(f"params must be orgnav_jax.gymnax_env.EnvParams (make_params), "
+                            f"got {type(params).__name__}")
         caps = params.step_caps
-        if not isinstance(caps, jax.core.Tracer) and int(np.max(np.asarray(caps))) > self.max_steps:
-            raise ValueError(f"step caps {np.asarray(caps).tolist()} exceed this NavEnv's "
+        if np.shape(caps) != (len(ROOM_TYPES),):
+            raise ValueError(f"EnvParams field 'step_caps': expected shape ({len(ROOM_TYPES)},), "
+                             f"one cap per room type {list(ROOM_TYPES)}, got shape "
+                             f"{tuple(np.shape(caps))}")
+        if isinstance(caps, jax.core.Tracer):
+            return
+        values = np.asarray(caps)
+        if not np.issubdtype(values.dtype, np.integer) or values.min() < 1:
+            raise ValueError(f"EnvParams field 'step_caps': expected integers >= 1, got "
+                             f"{values.tolist()}")
+        if int(values.max()) > self.max_steps:
+            raise ValueError(f"step caps {values.tolist()} exceed this NavEnv's "
                              f"max_steps {self.max_steps}: build it with max_steps >= the "
                              "largest cap")
 
@@ -166,13 +196,24 @@ class NavEnv(environment.Environment):
         _, new, reward, _, info = nav.step_env(state, action, params.scenes, params.rules())
         return self.get_obs(new, params), new, reward, info["terminated"], info
 
-    @partial(jax.jit, static_argnames=("self",))
     def step(self, key: jax.Array, state: nav.EnvState, action, params: EnvParams | None = None):
         """gymnax's step (auto-reset, six values, info["final_observation"]), resetting
         with `key` itself as orgnav_jax.env.step does (gymnax's base splits it), so both
         give the same episode for the same key. The observation is decoded once, from the
-        state kept."""
+        state kept.
+
+        Bad input: called with concrete values, an action outside 0..5, a state of other
+        scenes or malformed params raise ValueError here; under jit (vmap, a wrapper's
+        jit) an invalid action or a state outside the params' scenes is a no-op flagged
+        in info["invalid_action"] / info["invalid_state"] (orgnav_jax.env's module doc)."""
         params = self.default_params if params is None else params
+        self.check_params(params)
+        nav.check_action(action)
+        nav.check_state(state, params.scenes)
+        return self._step(key, state, action, params)
+
+    @partial(jax.jit, static_argnames=("self",))
+    def _step(self, key: jax.Array, state: nav.EnvState, action, params: EnvParams):
         obs_st, state_st, reward, terminated, info = self.step_env(key, state, action, params)
         truncated = self.is_truncated(state_st, params)
         done = terminated | truncated
@@ -245,7 +286,14 @@ class GymEnv(GymnaxToGymWrapper):
         obs, info = super().reset(seed=seed, options=options)
         return _to_numpy(obs), info
 
+    def __init__(self, env: NavEnv, params: EnvParams | None = None, seed: int | None = None):
+        params = env.default_params if params is None else params
+        env.check_params(params)
+        super().__init__(env, params, seed)
+
     def step(self, action):
+        """One action (an integer in 0..5; anything else is a ValueError, not an alias)."""
+        nav.check_action(action)
         obs, reward, terminated, truncated, info = super().step(action)
         return (_to_numpy(obs), float(reward), bool(terminated), bool(truncated),
                 _to_numpy(info))
@@ -269,6 +317,13 @@ def make(scene_preset: str = "small", split: str = "train", obs: str = "flat", *
     (default: the largest cap), raise it to use larger caps with the same env later.
     """
     rules = nav.EnvParams() if rules is None else rules
+    if obs not in OBS_MODES:            # before a scene set is built or loaded
+        raise ValueError(f"obs must be one of {list(OBS_MODES)}, got {obs!r}")
+    if split not in ("train", "val", "test"):
+        raise ValueError(f"split must be one of ['train', 'val', 'test'], got {split!r}")
+    if max_steps is not None and (not isinstance(max_steps, (int, np.integer))
+                                  or isinstance(max_steps, bool) or max_steps < 1):
+        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}")
     rooms = (scenes.split_view(split) if scenes is not None
              else device_split(scene_preset, seed, scenes_dir, split))  # one device copy
     params = make_params(rooms, rules)

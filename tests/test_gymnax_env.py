@@ -129,13 +129,13 @@ def test_one_compiled_step_serves_other_rewards_caps_and_scene_sets(flat_env, tr
     key = jax.random.PRNGKey(0)
     _, state = env.reset(key, params)
     env.step(key, state, 5, params)
-    before = gymnax_env.NavEnv.step._cache_size()
+    before = gymnax_env.NavEnv._step._cache_size()
     other = gymnax_env.make_params(
         train_rooms.replace(info=(("preset", "other"),), det_conf=train_rooms.det_conf * 0),
         nav.EnvParams(success_reward=9.0, step_penalty=-0.5, step_caps=(5, 10, 20, 30)))
     _, _, reward, *_ = env.step(key, state, 0, other)
     assert float(reward) == -0.5
-    assert gymnax_env.NavEnv.step._cache_size() == before
+    assert gymnax_env.NavEnv._step._cache_size() == before
     with pytest.raises(ValueError, match="max_steps"):
         gymnax_env.NavEnv("flat", max_steps=20, default_params=params.replace(
             step_caps=jnp.array([30, 30, 30, 30])))
@@ -197,6 +197,57 @@ def test_gymnasium_env_checker_passes(flat_env, obs):
         warnings.filterwarnings("ignore", message=".*return_info.*")  # gymnax's signature
         warnings.filterwarnings("ignore", message=".*infinity.*")  # features are unbounded
         check_env(env, skip_render_check=True)
+    for bad in (9, -1, 2.5, True):        # refused, not aliased (9 would act as Done)
+        with pytest.raises(ValueError, match=r"action .* invalid: expected integers in 0\.\.5"):
+            env.step(bad)
+
+
+def test_bad_actions_states_and_params(flat_env, train_rooms):
+    """Issue 38. Under jit an invalid action (7, -1, 2.7, nan) or a state outside the
+    params' scenes is a no-op flagged in info (state unchanged, reward 0, not done), never
+    an alias of a real action (7 acted as Done, -1 as MoveAhead, 2.7 as 2); eager calls
+    and the Python entry points raise one clear ValueError."""
+    env, params = flat_env
+    keys = jax.random.split(jax.random.PRNGKey(5), 8)
+    _, state = jax.vmap(env.reset, (0, None))(keys, params)
+    # rows 0-3 invalid actions, 4-6 valid (2.0 is action 2), row 7 a state of other scenes
+    action = jnp.array([7, -1, 2.7, jnp.nan, 2.0, 5, 0, 0], jnp.float32)
+    foreign = state.replace(scene=state.scene.at[7].set(99),
+                            state=state.state.at[7].set(train_rooms.num_states + 5))
+    _, new, reward, term, trunc, info = jax.jit(jax.vmap(env.step, (0, 0, 0, None)))(
+        keys, foreign, action, params)
+    bad = np.array([1, 1, 1, 1, 0, 0, 0, 1], bool)
+    np.testing.assert_array_equal(info["invalid_action"], [1, 1, 1, 1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(info["invalid_state"], [0, 0, 0, 0, 0, 0, 0, 1])
+    for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(foreign)):
+        np.testing.assert_array_equal(np.asarray(a)[bad], np.asarray(b)[bad])
+    assert not np.asarray(reward)[bad].any() and not np.asarray(term | trunc)[bad].any()
+    # the valid rows acted: 2.0 as RotateRight, 5 as Done (the episode ended), 0
+    assert np.asarray(new.prev_action)[[4, 6]].tolist() == [2, 0] and bool(term[5])
+    assert not np.asarray(info["success"] | info["failed"] | info["revisited"])[bad].any()
+    # eager calls: one line each, before anything is compiled
+    one = jax.tree_util.tree_map(lambda x: x[0], state)
+    for a in (7, -1, 2.7):
+        with pytest.raises(ValueError, match=rf"action {a} invalid: expected integers in 0..5"):
+            env.step(keys[0], one, a, params)
+    with pytest.raises(ValueError, match="is not a state of these scenes"):
+        env.step(keys[0], jax.tree_util.tree_map(lambda x: x[7], foreign), 0, params)
+    with pytest.raises(ValueError, match="is not a state of these scenes"):
+        nav.step_env(jax.tree_util.tree_map(lambda x: x[7], foreign), 0, train_rooms,
+                     nav.EnvParams())
+    # params built on the host: one cap per room type, caps >= 1, finite rewards
+    with pytest.raises(ValueError, match=r"'step_caps': expected 4 caps, one per room type"):
+        nav.EnvParams(step_caps=(30, 30, 30))
+    with pytest.raises(ValueError, match=r"'step_caps': expected integers >= 1"):
+        nav.EnvParams(step_caps=(30, 30, 0, 30))
+    with pytest.raises(ValueError, match=r"'step_caps': expected shape \(4,\)"):
+        env.step(keys[0], one, 0, params.replace(step_caps=jnp.array([30, 30, 30])))
+    with pytest.raises(ValueError, match=r"'success_reward': expected a finite number"):
+        gymnax_env.make_params(train_rooms, nav.EnvParams(success_reward=float("nan")))
+    with pytest.raises(ValueError, match=r"split must be one of"):
+        gymnax_env.make(split="tset")
+    with pytest.raises(ValueError, match=r"obs must be one of"):
+        gymnax_env.make(obs="pixels")
 
 
 def test_vector_gym_wrapper_steps_16_envs_with_numpy_actions(flat_env):
