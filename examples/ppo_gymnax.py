@@ -17,6 +17,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import sys
 import time
 from typing import NamedTuple
 
@@ -29,6 +30,7 @@ from gymnax.wrappers import LogWrapper
 
 from orgnav_jax import gymnax_env
 from orgnav_jax.constants import NUM_ACTIONS
+from orgnav_jax.errors import INT32_MAX, is_int, is_number, run_cli
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +57,29 @@ class Config:
     @property
     def num_updates(self) -> int:
         return max(1, self.total_timesteps // (self.num_envs * self.num_steps))
+
+    def check(self) -> "Config":
+        """ValueError naming the first field out of range (before anything is built)."""
+        for name in ("num_envs", "num_steps", "total_timesteps", "update_epochs",
+                     "num_minibatches", "hidden"):
+            value = getattr(self, name)
+            if not is_int(value) or not 1 <= value <= INT32_MAX:
+                raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")
+        for name in ("scene_seed", "seed"):
+            value = getattr(self, name)
+            if not is_int(value) or not 0 <= value <= INT32_MAX:
+                raise ValueError(f"{name}: expected an integer >= 0, got {value!r}")
+        if self.num_envs % self.num_minibatches:
+            raise ValueError(f"num_envs {self.num_envs} is not a multiple of "
+                             f"num_minibatches {self.num_minibatches}")
+        for name, lo, hi in (("lr", 0, None), ("gamma", 0, 1), ("gae_lambda", 0, 1),
+                             ("clip_eps", 0, None), ("ent_coef", 0, None),
+                             ("vf_coef", 0, None), ("max_grad_norm", 0, None)):
+            value = getattr(self, name)
+            if not is_number(value) or value < lo or (hi is not None and value > hi):
+                span = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
+                raise ValueError(f"{name}: expected a finite number {span}, got {value!r}")
+        return self
 
 
 # --------------------------------------------------------------------------- network
@@ -118,14 +143,12 @@ def make_env(config: Config, split: str = "train"):
 # --------------------------------------------------------------------------- training
 def make_train(config: Config, env=None, env_params=None):
     """-> train(key) -> {"params", "metrics"}: the whole run, jittable."""
+    config.check()
     if env is None:
         env, env_params = make_env(config)
     env = LogWrapper(env)
     network = ActorCriticGRU(config.hidden)
     n_envs, n_steps = config.num_envs, config.num_steps
-    if n_envs % config.num_minibatches:
-        raise ValueError(f"num_envs {n_envs} is not a multiple of num_minibatches "
-                         f"{config.num_minibatches}")
 
     def lr_schedule(count):
         steps_per_update = config.num_minibatches * config.update_epochs
@@ -243,12 +266,15 @@ def evaluate(params, config: Config, env=None, env_params=None, *, split: str = 
     """Success and SPL over num_envs episodes (each env's first episode) on a split,
     run together under jit; policy "trained" (params, sampled or greedy actions) or
     "random" (uniform actions, params unused)."""
+    if not is_int(num_envs) or num_envs < 1:
+        raise ValueError(f"num_envs (episodes): expected an integer >= 1, got {num_envs!r} "
+                         "(a success rate over no episode is not a number)")
+    if policy not in ("trained", "random"):
+        raise ValueError(f"policy must be 'trained' or 'random', got {policy!r}")
     if env is None:
         env, env_params = make_env(config, split)
     network = ActorCriticGRU(config.hidden)
     max_steps = int(env_params.max_steps_in_episode)
-    if policy not in ("trained", "random"):
-        raise ValueError(f"policy must be 'trained' or 'random', got {policy!r}")
 
     @jax.jit
     def run(key):
@@ -294,8 +320,14 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eval-episodes", type=int, default=512)
     a = p.parse_args(argv)
+    for option, value, lo in (("--num-envs", a.num_envs, 1),
+                              ("--total-timesteps", a.total_timesteps, 1),
+                              ("--seed", a.seed, 0), ("--eval-episodes", a.eval_episodes, 1)):
+        if not lo <= value <= INT32_MAX:
+            raise ValueError(f"{option}: expected an integer >= {lo}, got {value}")
     config = Config(scene_preset=a.scenes, scenes_dir=a.scenes_dir, seed=a.seed,
-                    total_timesteps=a.total_timesteps, num_envs=a.num_envs)
+                    total_timesteps=a.total_timesteps, num_envs=a.num_envs).check()
+    make_env(config, "val")          # the scenes exist and have val rooms, before training
     t0 = time.perf_counter()
     params, metrics = train(config)
     seconds = time.perf_counter() - t0
@@ -316,4 +348,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))     # the CLIs' convention: `error: ...`, exit 2 (orgnav_jax.errors)

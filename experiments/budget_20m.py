@@ -33,6 +33,7 @@ from orgnav_jax.training.run_dir import METRICS_FILE, read_metrics
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import claims  # noqa: E402  (sibling script: the paired statistics, reading a table dir)
 import knob  # noqa: E402  (sibling script: the adjacency reports)
+from orgnav_jax.errors import run_cli  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHORT, LONG = RESULTS / "table_5m", RESULTS / "table_20m"
@@ -141,11 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--check", action="store_true",
                     help="recompute budget.md from the runs' files; exit 1 on a difference")
     args = ap.parse_args(argv)
-    try:
-        text = markdown()
-    except (ValueError, FileNotFoundError, KeyError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    text = markdown()          # a missing or bad file: run_cli's one line, exit 2
     path = LONG / "budget.md"
     if args.check:
         if not path.exists() or path.read_text() != text:
@@ -159,4 +156,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))     # the CLIs' convention: `error: ...`, exit 2

@@ -33,6 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import run_table  # noqa: E402  (the sibling script: result paths, the table)
+from orgnav_jax.errors import read_json, run_cli  # noqa: E402  (the CLIs' error convention)
 
 BOOTSTRAP = 2000
 LEVEL = 0.95
@@ -205,15 +206,25 @@ def category_groups() -> dict[str, list[str]]:
 
 def per_category(out: Path, row: str = "org", ref: str = "baseline") -> str:
     """Markdown: `row` vs `ref` success per target category and per group
-    (category_groups), paired by seed, with 95% t intervals (test split)."""
+    (category_groups), paired by seed, with 95% t intervals (test split). Every results
+    file is read as read_table_dir reads it (its summary must equal its per-episode
+    outcomes) and must keep per-episode outcomes."""
     from orgnav_jax.constants import CATEGORIES
-    spec = run_table.read_spec(out / "spec.json")
+    spec = read_spec_of(out)
+    for r in (row, ref):
+        if r not in spec["rows"]:
+            raise ValueError(f"--per-category {r}: not a row of {out / 'spec.json'} "
+                             f"(rows: {', '.join(spec['rows'])})")
     docs = {}
     for r in (row, ref):
         for seed in spec["seeds"]:
-            path = run_table.results_path(out, r, seed)
-            if path.exists():
-                docs.setdefault(r, {})[str(seed)] = json.loads(path.read_text())
+            path = run_table.existing_results(out, r, seed)
+            if path is not None:
+                doc = read_results_doc(path)
+                if "per_episode" not in doc:
+                    raise ValueError(f"{path}: no per-episode outcomes (written before "
+                                     "they were kept): --per-category needs them")
+                docs.setdefault(r, {})[str(seed)] = doc
     seeds = sorted(set(docs.get(row, {})) & set(docs.get(ref, {})), key=int)
     if not seeds:
         return f"{row} vs {ref}: no seed has both rows yet\n"
@@ -261,24 +272,55 @@ def compact(results: dict, episodes: dict, lr: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def read_results(path: Path) -> tuple[dict, dict | None]:
-    """A results JSON -> (its stored overall summary, its per-episode arrays: success,
-    spl, ... (E,) each; None for results written before per-episode outcomes were kept).
-    The summary is recomputed from the per-episode outcomes and must equal the stored one
-    (ValueError naming the file otherwise)."""
+def read_results_doc(path: Path) -> dict:
+    """A results JSON as api.evaluate writes it, checked: an object with an `overall`
+    object of numbers; when it keeps `per_episode` outcomes, the summary recomputed from
+    them must equal the stored one. ValueError naming the file otherwise."""
+    from orgnav_jax.errors import is_number, read_field, read_object
     from orgnav_jax.evaluation import episodes_from_record, summarize
-    doc = json.loads(Path(path).read_text())
-    stored = doc["overall"]
+    doc = read_object(read_json(path, "a results JSON"), path)
+    stored = read_object(read_field(doc, "overall", path), f"{path}: field 'overall'")
+    bad = [k for k, v in stored.items() if not is_number(v)]
+    if bad:
+        raise ValueError(f"{path}: field 'overall': expected numbers, got {bad[0]!r}: "
+                         f"{stored[bad[0]]!r}")
     if "per_episode" not in doc:
-        return stored, None
-    per = episodes_from_record(doc["per_episode"])
-    again = summarize(per)
+        return doc
+    try:
+        per = episodes_from_record(read_object(doc["per_episode"],
+                                               f"{path}: field 'per_episode'"))
+        again = summarize(per)
+    except (KeyError, TypeError, IndexError, ValueError) as err:
+        raise ValueError(f"{path}: field 'per_episode' is malformed "
+                         f"({type(err).__name__}: {err})") from None
     bad = [k for k in stored if k in again and
            not np.isclose(stored[k], again[k], rtol=0, atol=1e-12)]
     if bad or set(again) != set(stored):
         raise ValueError(f"{path}: the stored summary differs from its per-episode "
                          f"outcomes in {bad or 'its keys'}")
-    return stored, per
+    doc["_per"] = per
+    return doc
+
+
+def read_results(path: Path) -> tuple[dict, dict | None]:
+    """A results JSON -> (its stored overall summary, its per-episode arrays: success,
+    spl, ... (E,) each; None for results written before per-episode outcomes were kept).
+    The summary is recomputed from the per-episode outcomes and must equal the stored one
+    (read_results_doc: ValueError naming the file otherwise)."""
+    doc = read_results_doc(path)
+    return doc["overall"], doc.get("_per")
+
+
+def read_spec_of(out: Path) -> dict:
+    """TABLE/spec.json of a run_table.py output directory (ValueError naming what is
+    missing)."""
+    if not out.is_dir():
+        raise ValueError(f"{out}: not a directory (expected a run_table.py output "
+                         "directory with spec.json)")
+    spec_path = out / "spec.json"
+    if not spec_path.is_file():
+        raise ValueError(f"{spec_path}: missing (run_table.py --spec writes it)")
+    return run_table.read_spec(spec_path)
 
 
 def read_table_dir(out: Path) -> tuple[dict, dict, dict]:
@@ -286,16 +328,13 @@ def read_table_dir(out: Path) -> tuple[dict, dict, dict]:
     checked against its per-episode outcomes), results[row][seed] = overall summary and
     episodes[row][seed] = per-episode arrays (success, spl); results written before
     per-episode outcomes were kept are taken as stored, without a bootstrap."""
-    spec_path = out / "spec.json"
-    if not spec_path.exists():
-        raise ValueError(f"{spec_path}: missing (run_table.py --spec writes it)")
-    spec = run_table.read_spec(spec_path)
+    spec = read_spec_of(out)
     results: dict = {}
     episodes: dict = {}
     for row in spec["rows"]:
         for seed in spec["seeds"]:
-            path = run_table.results_path(out, row, seed)
-            if not path.exists():
+            path = run_table.existing_results(out, row, seed)
+            if path is None:
                 continue
             stored, per = read_results(path)
             if per is not None:
@@ -320,10 +359,13 @@ def expected_files(out: Path) -> dict[str, str]:
 
 
 def write_all(out: Path) -> dict[str, str]:
-    """Write results.json, table.md and claims.md of `out` from its runs' files."""
+    """Write results.json, table.md and claims.md of `out` from its runs' files (all
+    read and checked first: a bad file writes nothing), each atomically."""
     files = expected_files(out)
     for name, text in files.items():
-        (out / name).write_text(text)
+        tmp = out / f".{name}.tmp"
+        tmp.write_text(text)
+        tmp.replace(out / name)
     return files
 
 
@@ -335,7 +377,7 @@ def check(out: Path) -> list[str]:
         if not path.exists():
             bad.append(f"{path}: missing")
         elif name.endswith(".json"):
-            if json.loads(path.read_text()) != json.loads(text):
+            if read_json(path) != json.loads(text):
                 bad.append(f"{path}: differs from the runs' test results")
         elif path.read_text() != text:
             bad.append(f"{path}: differs from what the runs' files give")
@@ -355,6 +397,7 @@ def main(argv: list[str] | None = None) -> int:
                          "files; exit 1 on any difference, write nothing")
     args = ap.parse_args(argv)
     out = Path(args.table)
+    read_spec_of(out)                     # a missing or bad table: one line, nothing written
     if args.per_category:
         print(per_category(out, *args.per_category))
         return 0
@@ -374,4 +417,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

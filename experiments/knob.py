@@ -35,6 +35,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import claims  # noqa: E402  (sibling script: the paired statistics, reading a table dir)
+from orgnav_jax.constants import NUM_CATEGORIES  # noqa: E402
+from orgnav_jax.errors import read_field, read_json, read_object, run_cli  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 OUT = RESULTS / "knob"
@@ -64,11 +66,20 @@ def write_adjacency(run_dir: Path) -> dict:
 def read_adjacency(path: Path) -> dict:
     """An adjacency.json whose stored report must equal the one its matrix gives."""
     from orgnav_jax.plots import adjacency
-    doc = json.loads(path.read_text())
-    again = adjacency.anchor_pair_report(np.asarray(doc["A"]))
-    if json.dumps(again, sort_keys=True) != json.dumps(doc["report"], sort_keys=True):
+    doc = read_object(read_json(path, "an adjacency JSON"), path)
+    A = read_field(doc, "A", path)
+    try:
+        A = np.asarray(A, np.float64)
+    except (TypeError, ValueError):
+        A = None
+    if A is None or A.shape != (NUM_CATEGORIES, NUM_CATEGORIES) or not np.isfinite(A).all():
+        raise ValueError(f"{path}: field 'A': expected a {NUM_CATEGORIES} x {NUM_CATEGORIES} "
+                         "matrix of finite numbers")
+    again = adjacency.anchor_pair_report(A)
+    report = read_field(doc, "report", path)
+    if json.dumps(again, sort_keys=True) != json.dumps(report, sort_keys=True):
         raise ValueError(f"{path}: the stored report differs from what its matrix gives")
-    return doc["report"]
+    return report
 
 
 def point_rows(results: Path = RESULTS) -> list[dict]:
@@ -206,4 +217,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))     # the CLIs' convention: `error: ...`, exit 2

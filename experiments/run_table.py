@@ -55,6 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from orgnav_jax import api
+from orgnav_jax.errors import INT32_MAX, is_int, read_json, run_cli, shown
 from orgnav_jax.training.run_dir import RunLock, is_run_dir
 from orgnav_jax.training.config import TABLE_ROWS, add_config_arguments, get_config, \
     overrides_from_args
@@ -79,6 +80,39 @@ def results_path(out: Path, row: str, seed: int | str) -> Path:
     base, plus, variant = row.partition("+")
     run_dir = out / "runs" / f"{base}-s{seed}"
     return run_dir / "tpn" / f"test_{variant}.json" if plus else run_dir / "test_results.json"
+
+
+def existing_results(out: Path, row: str, seed: int | str) -> Path | None:
+    """results_path(out, row, seed) if that file exists, None if it does not; a path
+    that cannot be looked at (a symbolic link loop, a link that leads nowhere, no
+    permission) is a ValueError naming it, never taken as "not run yet" (a run of the
+    table would otherwise drop out of it without a word)."""
+    path = results_path(out, row, seed)
+    try:
+        path.stat()
+        return path
+    except FileNotFoundError:
+        pass
+    except OSError as err:
+        raise ValueError(f"{path}: cannot be read ({err.strerror}; a symbolic link loop?)"
+                         ) from None
+    p = path
+    while p != out and p != p.parent:         # absent, unless a link on the way is broken
+        if p.is_symlink() and not p.exists():
+            raise ValueError(f"{p}: a symbolic link that leads nowhere")
+        p = p.parent
+    return None
+
+
+def read_provenance(path: Path) -> list:
+    """RUN_DIR/provenance.json: a list of session records ([] when absent); ValueError
+    naming the file otherwise."""
+    if not path.exists():
+        return []
+    sessions = read_json(path, "a provenance JSON")
+    if not isinstance(sessions, list) or not all(isinstance(x, dict) for x in sessions):
+        raise ValueError(f"{path}: expected a list of session records")
+    return sessions
 
 
 def provenance(top: Path | None = None) -> dict:
@@ -111,11 +145,36 @@ def record_provenance(run_dir: Path, what: str) -> None:
     machine of the process as it started ("code", "uncommitted_changes": what ran),
     and the time of the record."""
     path = run_dir / "provenance.json"
-    sessions = json.loads(path.read_text()) if path.exists() else []
+    sessions = read_provenance(path)
     run_dir.mkdir(parents=True, exist_ok=True)
     started = _STARTED or provenance()
     record = dict(started, started=started["time"], time=provenance()["time"], did=what)
-    path.write_text(json.dumps(sessions + [record], indent=1))
+    tmp = run_dir / ".provenance.json.tmp"
+    tmp.write_text(json.dumps(sessions + [record], indent=1))
+    tmp.replace(path)
+
+
+def check_run_files(out: Path, rows: list[str], seeds: list[int]) -> None:
+    """Before any work: every run's results and provenance.json that exist can be read
+    (a truncated provenance.json would otherwise stop the table after an evaluation
+    wrote its results)."""
+    for row in rows:
+        for seed in seeds:
+            results = existing_results(out, row, seed)
+            if results is not None:
+                read_results_overall(results)
+            base_dir = out / "runs" / f"{row.partition('+')[0]}-s{seed}"
+            read_provenance(base_dir / "provenance.json")
+            if "+" in row:
+                read_provenance(base_dir / "tpn" / "provenance.json")
+
+
+def read_results_overall(path: Path) -> dict:
+    """The `overall` summary of a results JSON (ValueError naming the file)."""
+    doc = read_json(path, "a results JSON")
+    if not isinstance(doc, dict) or not isinstance(doc.get("overall"), dict):
+        raise ValueError(f"{path}: expected a results JSON with an 'overall' object")
+    return doc["overall"]
 
 
 def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -> dict:
@@ -126,8 +185,8 @@ def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -
     run_one(base, seed, out, overrides)
     results = results_path(out, row, seed)
     tpn_dir = results.parent
-    if results.exists():
-        return json.loads(results.read_text())["overall"]
+    if existing_results(out, row, seed) is not None:
+        return read_results_overall(results)
     cfg = get_tpn_config(**tpn_fields, base_dir=str(tpn_dir.parent), seed=seed,
                          run_dir=str(tpn_dir))
     # trains, continues an interrupted run, or (finished) only reloads it
@@ -146,8 +205,8 @@ def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
     the random policy on the same test episodes, its actions sampled with `seed`."""
     results = results_path(out, row, seed)
     run_dir = results.parent
-    if results.exists():
-        return json.loads(results.read_text())["overall"]
+    if existing_results(out, row, seed) is not None:
+        return read_results_overall(results)
     if row == "random":
         metrics = api.evaluate_policy(
             "random", "test", overrides.get("scene_preset", "small"),
@@ -239,10 +298,13 @@ def table_text(results: dict[str, dict[str, dict]]) -> str:
 
 
 def write_table(out: Path, results: dict[str, dict[str, dict]]) -> str:
-    """OUT/table.md (table_text) and OUT/results.json (results[row][seed] = overall)."""
+    """OUT/table.md (table_text) and OUT/results.json (results[row][seed] = overall),
+    each written atomically."""
     text = table_text(results)
-    (out / "table.md").write_text(text)
-    (out / "results.json").write_text(json.dumps(results, indent=1))
+    for name, body in (("table.md", text), ("results.json", json.dumps(results, indent=1))):
+        tmp = out / f".{name}.tmp"
+        tmp.write_text(body)
+        tmp.replace(out / name)
     return text
 
 
@@ -258,6 +320,8 @@ def write_outputs(out: Path, results: dict, spec: dict | None) -> str:
 def read_spec(path: str | Path) -> dict:
     """A table spec (JSON: out, rows, seeds, config, tpn) -> dict; ValueError naming the
     file and the field otherwise."""
+    if Path(path).is_dir():
+        raise ValueError(f"table spec {path}: a directory, expected a JSON file")
     try:
         spec = json.loads(Path(path).read_text())
     except ValueError as err:
@@ -274,13 +338,23 @@ def read_spec(path: str | Path) -> dict:
     for key, kind in SPEC_OPTIONAL.items():
         if key in spec and not isinstance(spec[key], kind):
             raise ValueError(f"table spec {path}: field {key!r} is not a {kind.__name__}")
+    if not spec["rows"]:
+        raise ValueError(f"table spec {path}: field 'rows': expected at least one row")
     try:
         for row in spec["rows"]:
+            if not isinstance(row, str):
+                raise argparse.ArgumentTypeError(f"expected row names (strings), got {row!r}")
             row_name(row)
     except argparse.ArgumentTypeError as err:
         raise ValueError(f"table spec {path}: field 'rows': {err}") from None
-    if not spec["seeds"] or not all(isinstance(x, int) and x >= 0 for x in spec["seeds"]):
-        raise ValueError(f"table spec {path}: field 'seeds': expected integers >= 0")
+    if not spec["seeds"] or not all(is_int(x) and 0 <= x <= INT32_MAX for x in spec["seeds"]):
+        raise ValueError(f"table spec {path}: field 'seeds': expected integers >= 0, got "
+                         f"{shown(spec['seeds'])}")
+    for key in ("rows", "seeds"):
+        if len(set(spec[key])) != len(spec[key]):
+            raise ValueError(f"table spec {path}: field {key!r}: an entry appears twice")
+    if not spec["out"]:
+        raise ValueError(f"table spec {path}: field 'out': expected a directory, got ''")
     get_config("baseline", **spec["config"])          # names a bad field or value
     from orgnav_jax.tpn.config import get_tpn_config
     get_tpn_config(base_dir="runs/x", **spec["tpn"])
@@ -304,6 +378,44 @@ def write_curves(out: Path, results: dict[str, dict[str, dict]]) -> Path | None:
     except Exception as err:                    # noqa: BLE001 (curves are optional)
         print(f"warning: no learning curves ({type(err).__name__}: {err})", file=sys.stderr)
         return None
+
+
+# the files run_table.py (re)writes in --out (claims.py too, with a spec)
+TABLE_FILES = ("spec.json", "results.json", "table.md", "claims.md", "curves.png")
+
+
+def check_out(out: Path, spec_path: str | None) -> None:
+    """--out must be new, or a table run_table.py made (it holds runs/ or a results.json
+    of rows and seeds), or hold none of the table files it rewrites (TABLE_FILES): a
+    folder with the user's own spec.json or table.md is refused before anything is
+    written; so is a spec that lies at OUT/spec.json, which the table would replace.
+    Other files in --out are never touched."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise ValueError(f"--out {out}: not a directory")
+    if spec_path is not None and (out / "spec.json").exists() and \
+            Path(spec_path).resolve() == (out / "spec.json").resolve():
+        raise ValueError(f"--spec {spec_path}: lies at OUT/spec.json, which the table "
+                         "rewrites: keep the spec outside its output directory")
+    saved = out / "results.json"
+    if saved.exists():
+        doc = read_json(saved, "a results JSON")
+        if not (isinstance(doc, dict) and all(
+                isinstance(v, dict) and all(isinstance(r, dict) for r in v.values())
+                for v in doc.values())):
+            raise ValueError(f"--out {out}: its results.json is not a table's "
+                             "(results[row][seed] = metrics): not overwritten; choose a "
+                             "new directory")
+        return
+    if (out / "runs").is_dir():
+        return
+    present = [name for name in TABLE_FILES if (out / name).exists() or
+               (out / name).is_symlink()]
+    if present:
+        raise ValueError(f"--out {out}: holds {', '.join(present)} that run_table.py did "
+                         "not write (no runs/, no results.json): choose a new directory "
+                         "(nothing was written)")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -350,7 +462,11 @@ def main(argv: list[str] | None = None) -> None:
             args.rows = args.only
     elif args.only:
         ap.error("--only goes with --spec")
+    if not args.seeds or any(x < 0 for x in args.seeds):
+        ap.error(f"--seeds: expected integers >= 0, got {args.seeds}")
     out = Path(args.out)
+    check_out(out, args.spec)
+    check_run_files(out, args.rows, args.seeds)
     out.mkdir(parents=True, exist_ok=True)
     with RunLock(out):        # one table writer per --out (results.json is rewritten)
         if spec is not None:
@@ -358,7 +474,7 @@ def main(argv: list[str] | None = None) -> None:
         # without a spec, rows of earlier invocations with the same --out stay in the
         # table; with one, the table is exactly what the spec's runs hold
         saved = out / "results.json"
-        results: dict[str, dict[str, dict]] = (json.loads(saved.read_text())
+        results: dict[str, dict[str, dict]] = (read_json(saved, "a results JSON")
                                                if saved.exists() and spec is None else {})
         # seed-major (a partial table covers all rows); with a population, row-major:
         # all seeds of a row train in one program, then are tested, then the next row
@@ -381,4 +497,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

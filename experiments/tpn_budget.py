@@ -33,6 +33,7 @@ import claims  # noqa: E402  (sibling script: results JSONs read and checked)
 import run_table  # noqa: E402  (provenance records)
 
 from orgnav_jax import api  # noqa: E402
+from orgnav_jax.errors import read_json, read_object, run_cli  # noqa: E402
 from orgnav_jax.training.config import get_config  # noqa: E402
 from orgnav_jax.training.run_dir import is_run_dir, read_metrics  # noqa: E402
 
@@ -133,10 +134,14 @@ def write_summary(out: Path, summary: dict) -> str:
 
 def check(out: Path) -> int:
     """Recompute budget.json and budget.md from the run files; 1 on a difference."""
-    doc = json.loads((out / "budget.json").read_text())
-    again = summarize(out, doc["seed"], doc["lrs"], {b: [int(x) for x in e["budgets"]]
-                                                     for b, e in doc["bases"].items()},
-                      doc["config"])
+    path = out / "budget.json"
+    doc = read_object(read_json(path, "a budget JSON"), path)
+    try:
+        args = (doc["seed"], doc["lrs"], {b: [int(x) for x in e["budgets"]]
+                                          for b, e in doc["bases"].items()}, doc["config"])
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        raise ValueError(f"{path}: malformed ({type(err).__name__}: {err})") from None
+    again = summarize(out, *args)
     if json.loads(json.dumps(again)) != doc or table(again) != (out / "budget.md").read_text():
         print(f"check failed: {out}/budget.json or budget.md differs from what the runs' "
               "files give", file=sys.stderr)
@@ -176,4 +181,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))     # the CLIs' convention: `error: ...`, exit 2

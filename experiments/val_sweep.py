@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from orgnav_jax.errors import run_cli
 from orgnav_jax.training.run_dir import METRICS_FILE, is_run_dir, read_metrics
 from orgnav_jax.training.config import TrainConfig, get_config, load_config
 
@@ -113,4 +114,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))     # the CLIs' convention: `error: ...`, exit 2

@@ -159,3 +159,19 @@ def read_str(doc: dict, field: str, source, *, choices=None, default=_MISSING) -
         raise field_error(source, field, f"one of {list(choices)}" if choices is not None
                           else "a string", value)
     return value
+
+
+def read_json(path, what: str = "JSON"):
+    """The parsed JSON of a file; a ValueError naming the file when it is not JSON (cut
+    short by a kill, say) and an OSError naming it when it cannot be read."""
+    import json
+    from pathlib import Path
+    try:
+        text = Path(path).read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not {what} (not UTF-8 text)") from None
+    try:
+        return json.loads(text)
+    except ValueError as err:
+        raise ValueError(f"{path}: not {what} ({getattr(err, 'msg', err)} at line "
+                         f"{getattr(err, 'lineno', '?')}; a file cut short?)") from None

@@ -253,3 +253,84 @@ def test_the_20m_comparison_agrees_with_its_runs(tmp_path):
     assert budget.markdown(long_dir=copy) != (budget.LONG / "budget.md").read_text()
     with pytest.raises(ValueError, match="no val record at or after 30,000,000 env steps"):
         budget.val_at(run, 30_000_000)
+
+
+# issue 38: the experiment scripts follow the CLIs' error convention (orgnav_jax.errors.
+# run_cli: one line naming the file or field, exit 2) and write nothing on bad input
+
+def _snapshot(root: Path) -> dict:
+    return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None)
+            for p in sorted(root.rglob("*")) if not p.is_symlink()}
+
+
+def test_claims_bad_tables_are_one_line_and_write_nothing(claims, table_dir, tmp_path_factory,
+                                                          cli_error):
+    missing = tmp_path_factory.mktemp("x") / "nope"
+    assert "nope: not a directory" in cli_error(claims.main, [missing])
+    # a truncated results file (a kill while it was written) is named
+    run = table_dir / "runs" / "il-s1" / "test_results.json"
+    text = run.read_text()
+    run.write_text(text[: len(text) // 2])
+    before = _snapshot(table_dir)
+    line = cli_error(claims.main, [table_dir])
+    assert "il-s1/test_results.json: not a results JSON" in line, line
+    assert _snapshot(table_dir) == before and not (table_dir / "claims.md").exists()
+    run.write_text(text)
+    # a run folder that is a symbolic link loop is named, not dropped from the table
+    loop = table_dir / "runs" / "org-s2"
+    shutil.rmtree(loop)
+    loop.symlink_to(loop)
+    line = cli_error(claims.main, [table_dir])
+    assert "org-s2/test_results.json: cannot be read" in line, line
+    line = cli_error(claims.main, [table_dir, "--per-category", "org", "baseline"])
+    assert "org-s2/test_results.json: cannot be read" in line, line
+    loop.unlink()
+    # --per-category checks the per-episode outcomes against their summary, as
+    # --compact does, and names rows the spec lacks
+    doc = json.loads(run.read_text())
+    doc["per_episode"]["outcome"][0] = 1 - doc["per_episode"]["outcome"][0]
+    run.write_text(json.dumps(doc))
+    for argv in ([table_dir, "--per-category", "il", "baseline"], [table_dir, "--compact"]):
+        assert "il-s1/test_results.json: the stored summary differs from its per-episode " \
+               "outcomes" in cli_error(claims.main, argv)
+    assert "--per-category dsp: not a row of" in cli_error(
+        claims.main, [table_dir, "--per-category", "dsp", "baseline"])
+    assert not (table_dir / "claims.md").exists()
+
+
+def test_run_table_bad_specs_and_outputs_are_one_line_and_write_nothing(table_dir, tmp_path_factory,
+                                                                        cli_error):
+    sys.path.insert(0, str(EXPERIMENTS))
+    import run_table
+    work = tmp_path_factory.mktemp("specs")
+    good = {"out": str(work / "t"), "rows": ["baseline"], "seeds": [0], "config": {},
+            "tpn": {}}
+    cases = [({"rows": "baseline"}, "field 'rows' missing or not a list"),
+             ({"seeds": ["0", "1"]}, "field 'seeds': expected integers >= 0"),
+             ({"seeds": [True]}, "field 'seeds': expected integers >= 0"),
+             ({"rows": ["baseline", "nope"]}, "field 'rows': unknown row 'nope'"),
+             ({"rows": [3]}, "field 'rows': expected row names"),
+             ({"rows": []}, "field 'rows': expected at least one row")]
+    for change, message in cases:
+        (work / "s.json").write_text(json.dumps(dict(good, **change)))
+        assert message in cli_error(run_table.main, ["--spec", work / "s.json"])
+    assert "a directory, expected a JSON file" in cli_error(run_table.main, ["--spec", work])
+    assert list(work.iterdir()) == [work / "s.json"]           # no output folder made
+    # a folder holding the user's own spec.json and table.md is not overwritten
+    user = work / "mine"
+    user.mkdir()
+    (user / "spec.json").write_text("my notes\n")
+    (user / "table.md").write_text("| my | table |\n")
+    (work / "s.json").write_text(json.dumps(dict(good, out=str(user))))
+    line = cli_error(run_table.main, ["--spec", work / "s.json"])
+    assert "holds spec.json, table.md that run_table.py did not write" in line, line
+    assert {p.name: p.read_text() for p in user.iterdir()} == {
+        "spec.json": "my notes\n", "table.md": "| my | table |\n"}
+    # a truncated provenance.json is named before any run is trained or evaluated
+    prov = table_dir / "runs" / "baseline-s0" / "provenance.json"
+    prov.write_text('[{"code": "abc", "ti')
+    (work / "s.json").write_text(json.dumps(dict(good, out=str(table_dir))))
+    before = _snapshot(table_dir)
+    line = cli_error(run_table.main, ["--spec", work / "s.json"])
+    assert "baseline-s0/provenance.json: not a provenance JSON" in line, line
+    assert _snapshot(table_dir) == before
