@@ -1,4 +1,5 @@
-"""TPN: top-k attention, causal/padding masks, incremental == batched memory, deadlock memory."""
+"""TPN: top-k attention, the release's head (a numpy hand computation, the release's widths),
+causal/padding masks, incremental == batched memory, deadlock memory."""
 
 from __future__ import annotations
 
@@ -100,19 +101,106 @@ def test_topk_leading_dims_match_rows():
 
 # ---------------------------------------------------------------------- TPN batched
 
+def randomized(params, seed=30):
+    """Every leaf random: kernels N(0, 1/fan_in), biases N(0, 0.3^2), LayerNorm scales
+    1 + N(0, 0.3^2) (the init's zero biases and unit scales would hide a missing one)."""
+    leaves, tree = jax.tree_util.tree_flatten_with_path(params)
+    rng = np.random.default_rng(seed)
+    new = []
+    for path, x in leaves:
+        name = jax.tree_util.keystr(path[-1:])
+        z = rng.standard_normal(x.shape).astype(np.float32)
+        new.append(z / np.sqrt(x.shape[0]) if "kernel" in name else
+                   1 + 0.3 * z if "scale" in name else 0.3 * z)
+    return jax.tree_util.tree_unflatten(tree, new)
+
+
 @pytest.fixture(scope="module")
 def model_and_params():
-    model = tpn.TPN(hidden=H, action_embed=4, mlp=16, top_k=3)
+    model = tpn.TPN(hidden=H, action_embed=4, top_k=3)
     B, T = 2, 9
-    params = jax.jit(model.init)(jax.random.PRNGKey(0), rnd(1, B, T, H), probs_of(2, B, T),
-                        np.ones((B, T), bool))
-    return model, params
+    params = jax.eval_shape(model.init, jax.random.PRNGKey(0), rnd(1, B, T, H),
+                            probs_of(2, B, T), np.ones((B, T), bool))
+    return model, randomized(params)
 
 
 @pytest.fixture(scope="module")
 def batched(model_and_params):
     model, params = model_and_params
     return jax.jit(lambda h, p, v: model.apply(params, h, p, v))
+
+
+# the release's head by hand (numpy, float64): models/tpn_net.py's docstring formula
+def _ln(x, p):
+    mu, var = x.mean(-1, keepdims=True), x.var(-1, keepdims=True)
+    return (x - mu) / np.sqrt(var + 1e-5) * p["scale"] + p["bias"]
+
+
+def _mlp(x, P, a, b, norm=True):
+    """Dense a -> (LN) -> ReLU -> Dense b -> (LN)."""
+    dense = lambda x, n: x @ P[n]["kernel"] + P[n]["bias"]
+    ln = (lambda x, n: _ln(x, P[n])) if norm else (lambda x, n: x)
+    x = np.maximum(ln(dense(x, a), a.replace("_", "_norm_")), 0)
+    return ln(dense(x, b), b.replace("_", "_norm_"))
+
+
+def numpy_tpn(P, h, probs, k):
+    """One episode, every step valid: h (T, H), probs (T, 6) -> logits (T, 6)."""
+    P = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), P["params"])
+    relu = lambda x: np.maximum(x, 0)
+    r = relu(h + _mlp(h, P, "rep_1", "rep_2"))                         # (T, H)
+    e = relu(probs @ P["prob_embed"]["kernel"] + P["prob_embed"]["bias"])
+    values = np.concatenate([r[1:], e[:-1]], 1)          # slot i: [r_{i+1}, e_i]
+    out = []
+    for t in range(len(h)):
+        read = np.zeros(values.shape[1])                 # step 0: nothing to read
+        if t > 0:
+            scores = r[:t] @ r[t]                        # keys r_0 .. r_{t-1}
+            top = np.argsort(-scores)[:k]
+            w = np.exp(scores[top] - scores[top].max())
+            read = (w / w.sum()) @ values[top]
+        m = relu(_mlp(read, P, "memory_1", "memory_2"))  # the zero read goes through too
+        z = np.concatenate([r[t], m])
+        z = relu(z + _mlp(z, P, "block_1", "block_2"))
+        out.append(_mlp(z, P, "predict_1", "predict_2", norm=False))
+    return np.stack(out)
+
+
+def test_the_head_is_the_releases_formula(model_and_params, batched):
+    """Whole-episode logits against the numpy hand computation of the release's head:
+    residual LayerNorm MLPs with their ReLUs, ReLU(Dense(p)) action embedding, the read's
+    MLP also at step 0 (zero read), top-k (3 of up to 8 slots) over earlier steps."""
+    model, params = model_and_params
+    B, T = 2, 9
+    h, p = rnd(40, B, T, H), probs_of(41, B, T)
+    ours = np.asarray(batched(h, p, np.ones((B, T), bool)))
+    for b in range(B):
+        ref = numpy_tpn(params, h[b].astype(np.float64), p[b].astype(np.float64), 3)
+        np.testing.assert_allclose(ours[b], ref, rtol=1e-4, atol=1e-4 * np.abs(ref).max())
+    assert np.ptp(ours[:, 0]) > 0.1        # the zero read at step 0 still gives logits
+
+
+def test_the_release_widths_and_defaults():
+    """At hidden 512 with the default TPN settings the parameters have the release's
+    shapes (torch Linear (out, in) = our kernel transposed): 512 -> 256 -> 512, 6 -> 6,
+    518 -> 1024 -> 518, 1030 -> 512 -> 1030, 1030 -> 512 -> 6; widths follow hidden."""
+    from types import SimpleNamespace
+    from orgnav_jax.tpn.config import TPNNetwork
+    from orgnav_jax.tpn.test_time import build_tpn, init_tpn_params
+    net = build_tpn(SimpleNamespace(hidden=512), TPNNetwork())
+    shapes = jax.eval_shape(lambda: init_tpn_params(net, SimpleNamespace(hidden=512),
+                                                    jax.random.PRNGKey(0)))["params"]
+    dense = {"rep_1": (512, 256), "rep_2": (256, 512), "prob_embed": (6, 6),
+             "memory_1": (518, 1024), "memory_2": (1024, 518), "block_1": (1030, 512),
+             "block_2": (512, 1030), "predict_1": (1030, 512), "predict_2": (512, 6)}
+    norms = {"rep_norm_1": 256, "rep_norm_2": 512, "memory_norm_1": 1024,
+             "memory_norm_2": 518, "block_norm_1": 512, "block_norm_2": 1030}
+    assert set(shapes) == set(dense) | set(norms)
+    for name, (i, o) in dense.items():
+        assert shapes[name]["kernel"].shape == (i, o) and shapes[name]["bias"].shape == (o,)
+    for name, n in norms.items():
+        assert shapes[name]["scale"].shape == shapes[name]["bias"].shape == (n,)
+    assert (net.top_k, net.action_embed) == (10, 6)
 
 
 def test_call_is_causal(batched):

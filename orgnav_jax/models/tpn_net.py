@@ -1,9 +1,23 @@
-"""Tentative Policy Network (paper Sec. 3.4) and its internal state memory.
+"""Tentative Policy Network (paper Sec. 3.4) and its internal state memory: the release's
+head (xiaobaishu0097/ECCV-VN, models/metamemorygraphmodel.py), every width derived from
+the LSTM width H as the release's at H = 512; E = action_embed (the release's 6), A = 6
+actions. LN: LayerNorm (epsilon 1e-5, torch's); Dense_n: a Dense layer to n units.
 
-    r_t    = h_t + Dense_H(ReLU(Dense_H(h_t)))            h_t: LSTM output (H,)
-    slot i : key r_i, value [r_{i+1}, Dense_E(p_i)]       p_i: base policy probs (6,)
-    read_t = top-k softmax attention of r_t over the complete slots i <= t-1
-    logits = Dense_6(ReLU(LN(Dense_mlp(ReLU(LN(Dense_mlp([r_t, read_t])))))))
+    h_t (H,)      LSTM output
+    r_t (H,)      = ReLU(h_t + LN(Dense_H(ReLU(LN(Dense_{H//2}(h_t))))))     state rep
+    e_i (E,)      = ReLU(Dense_E(p_i))             p_i (6,): the base policy's probs at i
+    slot i        : key r_i, value [r_{i+1}, e_i] (H+E,)
+    read_t (H+E,) = top-k softmax attention of r_t over the complete slots i <= t-1;
+                    zeros when there is none (step 0)
+    m_t (H+E,)    = ReLU(LN(Dense_{H+E}(ReLU(LN(Dense_{2H}(read_t))))))    (also at step 0)
+    z_t (2H+E,)   = [r_t, m_t];  z_t <- ReLU(z_t + LN(Dense_{2H+E}(ReLU(LN(Dense_H(z_t))))))
+    logits_t (A,) = Dense_A(ReLU(Dense_H(z_t)))
+
+At H = 512, E = 6: 512 -> 256 -> 512, 6 -> 6, 518 -> 1024 -> 518, 1030 -> 512 -> 1030,
+1030 -> 512 -> 6, the release's. Dense kernels start Glorot-uniform, biases 0 (the
+release's weights_init). Parameters (flax names; the release's state_dict names in
+docs/tpn.md): rep_1, rep_norm_1, rep_2, rep_norm_2; prob_embed; memory_1, memory_norm_1,
+memory_2, memory_norm_2; block_1, block_norm_1, block_2, block_norm_2; predict_1, predict_2.
 
 TPN.__call__ reads whole episodes (B, T, .) at once with a (T, T) causal mask (training);
 TPNMemory + memory_* functions + TPN.step_logits run it step by step (test time) and give
@@ -57,29 +71,44 @@ def topk_attention(query, keys, values, valid, k: int) -> jax.Array:
 
 
 class TPN(nn.Module):
-    """Tentative policy network over LSTM outputs of width `hidden` (= representation width).
-    Parameters: rep_1, rep_2 (representation), prob_embed, head_1/norm_1, head_2/norm_2, out."""
+    """Tentative policy network over LSTM outputs of width `hidden` (the module docstring:
+    the formula, widths and parameter names)."""
     hidden: int
-    action_embed: int = 32
-    mlp: int = 256
+    action_embed: int = 6
     top_k: int = 10
 
     def setup(self):
-        self.rep_1, self.rep_2 = nn.Dense(self.hidden), nn.Dense(self.hidden)
-        self.prob_embed = nn.Dense(self.action_embed)
-        self.head_1, self.norm_1 = nn.Dense(self.mlp), nn.LayerNorm()
-        self.head_2, self.norm_2 = nn.Dense(self.mlp), nn.LayerNorm()
-        self.out = nn.Dense(NUM_ACTIONS)
+        H, E = self.hidden, self.action_embed
+        dense = lambda n: nn.Dense(n, kernel_init=nn.initializers.xavier_uniform())
+        norm = lambda: nn.LayerNorm(epsilon=1e-5)
+        self.rep_1, self.rep_norm_1 = dense(max(1, H // 2)), norm()
+        self.rep_2, self.rep_norm_2 = dense(H), norm()
+        self.prob_embed = dense(E)
+        self.memory_1, self.memory_norm_1 = dense(2 * H), norm()
+        self.memory_2, self.memory_norm_2 = dense(H + E), norm()
+        self.block_1, self.block_norm_1 = dense(H), norm()
+        self.block_2, self.block_norm_2 = dense(2 * H + E), norm()
+        self.predict_1, self.predict_2 = dense(H), dense(NUM_ACTIONS)
 
     def represent(self, h):
-        """(..., H) LSTM output -> r (..., H), residual MLP."""
-        return h + self.rep_2(nn.relu(self.rep_1(h)))
+        """(..., H) LSTM output -> r (..., H): ReLU(h + LN(Dense(ReLU(LN(Dense(h))))))."""
+        x = nn.relu(self.rep_norm_1(self.rep_1(h)))
+        return nn.relu(h + self.rep_norm_2(self.rep_2(x)))
+
+    def embed_probs(self, probs):
+        """(..., 6) policy probabilities -> (..., E): ReLU(Dense(p)). (The release embeds
+        them when it writes a slot; the TPN's parameters are fixed within an episode, so
+        embedding at read time is the same.)"""
+        return nn.relu(self.prob_embed(probs))
 
     def _head(self, r, read):
-        x = jnp.concatenate([r, read], axis=-1)
-        x = nn.relu(self.norm_1(self.head_1(x)))
-        x = nn.relu(self.norm_2(self.head_2(x)))
-        return self.out(x)
+        """r (..., H), read (..., H+E) (zeros: nothing read) -> logits (..., 6)."""
+        m = nn.relu(self.memory_norm_1(self.memory_1(read)))
+        m = nn.relu(self.memory_norm_2(self.memory_2(m)))
+        z = jnp.concatenate([r, m], axis=-1)
+        res = nn.relu(self.block_norm_1(self.block_1(z)))
+        z = nn.relu(z + self.block_norm_2(self.block_2(res)))
+        return self.predict_2(nn.relu(self.predict_1(z)))
 
     def read_logits(self, r, keys, next_r, probs, valid):
         """r (B, H), keys (B, M, H), next_r (B, M, H), probs (B, M, 6), valid (B, M)
@@ -88,12 +117,12 @@ class TPN(nn.Module):
         topk_attention over all M values, without materializing them)."""
         w, idx = topk_weights(r, keys, valid, self.top_k)                  # (B, k)
         pick = lambda buf: jnp.take_along_axis(buf, idx[..., None], axis=-2)
-        values = jnp.concatenate([pick(next_r), self.prob_embed(pick(probs))], axis=-1)
+        values = jnp.concatenate([pick(next_r), self.embed_probs(pick(probs))], axis=-1)
         return self._head(r, jnp.einsum("bk,bkv->bv", w, values)), (w, idx)
 
     def __call__(self, h, probs, valid):
         """Whole episodes: h (B, T, H), probs (B, T, 6), valid (B, T) -> logits (B, T, 6).
-        Step t reads slots i <= t-1 with valid[i] & valid[i+1]: key r_i, value (r_{i+1}, p_i).
+        Step t reads slots i <= t-1 with valid[i] & valid[i+1]: key r_i, value (r_{i+1}, e_i).
         Slot T-1 has no successor and is never read."""
         T = h.shape[1]
         r = self.represent(h)                                            # (B, T, H)
@@ -101,7 +130,7 @@ class TPN(nn.Module):
         slot_ok = valid & jnp.concatenate([valid[:, 1:], jnp.zeros_like(valid[:, :1])], 1)
         causal = jnp.tril(jnp.ones((T, T), bool), k=-1)                  # [t, i]: i < t
         mask = causal[None] & slot_ok[:, None, :]                        # (B, T, T)
-        values = jnp.concatenate([next_r, self.prob_embed(probs)], axis=-1)
+        values = jnp.concatenate([next_r, self.embed_probs(probs)], axis=-1)
         read = topk_attention(r, r[:, None], values[:, None], mask, self.top_k)
         return self._head(r, read)
 
@@ -114,6 +143,17 @@ class TPN(nn.Module):
         mem = memory_observe(mem, r)
         logits, read = self.read_logits(r, mem.keys, mem.next_r, mem.probs, memory_valid(mem))
         return logits, r, mem, read
+
+
+def step_floats(hidden: int, action_embed: int, top_k: int) -> int:
+    """Floats of the TPN's forward activations for one step of TPN.__call__ (each layer's
+    output, its LayerNorm and ReLU; the values and the top-k read), for memory estimates."""
+    H, E, A = hidden, action_embed, NUM_ACTIONS
+    return (3 * max(1, H // 2) + 3 * H             # represent
+            + 2 * E + (H + E) + top_k * (H + E)    # values, the top-k slots read
+            + 3 * 2 * H + 3 * (H + E)              # the read's MLP
+            + (2 * H + E) + 3 * H + 3 * (2 * H + E)  # z, the residual block
+            + 2 * H + A)                            # predict
 
 
 def attention_map(read, size: int) -> jax.Array:
