@@ -83,8 +83,8 @@ def test_train_config_edges_are_valid(fields):
 
 
 @pytest.mark.parametrize("field, value, message", [
-    ("action_embed", 0, "action_embed >= 1"), ("mlp", 0, "mlp >= 1"),
-    ("top_k", 0, "top_k >= 1"), ("signature_dim", 0, "signature_dim >= 1"),
+    ("action_embed", 0, "action_embed >= 1"), ("top_k", 0, "top_k >= 1"),
+    ("signature_dim", 0, "signature_dim >= 1"),
     ("episode_cap", 0, "1 <= episode_cap"), ("num_envs", 0, "num_envs >= 1"),
     ("total_episodes", 0, "total_episodes >= 1"),
     ("updates_per_chunk", 0, "updates_per_chunk >= 1"),
@@ -148,6 +148,22 @@ def test_configs_before_version_5_read_max_steps_as_episode_cap(tmp_path, versio
         (run / "config.json").write_text(json.dumps({"stage": stage, **doc}))
         with pytest.raises(ValueError, match=r"unknown config field\(s\) \['max_steps'\]"):
             load(run)
+
+
+def test_a_stage2_run_of_the_tpn_head_before_the_releases_is_refused(tmp_path):
+    """A TPN config saved before issue 39 (its 'mlp' field: another network, whose
+    parameters this TPN cannot read) is a one-line error naming the file; a current one
+    reads back with the release's widths."""
+    from orgnav_jax.tpn.config import load_tpn_config
+    doc = json.loads(get_tpn_config(episode_cap=23).to_json())
+    (tmp_path / "config.json").write_text(json.dumps(doc))
+    cfg = load_tpn_config(tmp_path)
+    assert (cfg.action_embed, cfg.top_k, cfg.episode_cap) == (6, 10, 23)
+    (tmp_path / "config.json").write_text(json.dumps({**doc, "action_embed": 32, "mlp": 256}))
+    with pytest.raises(ValueError, match="TPN head before the release's") as err:
+        load_tpn_config(tmp_path)
+    line = str(err.value)
+    assert line.startswith(str(tmp_path / "config.json")) and "\n" not in line
 
 
 def test_max_steps_is_the_old_name_of_the_episode_cap_flag():

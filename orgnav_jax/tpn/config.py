@@ -40,9 +40,9 @@ TPN_LR = 1e-3
 # test-time policy's compile-cache key); stage 2's fields stay on TPNConfig.
 @dataclasses.dataclass(frozen=True)
 class TPNNetwork:
-    """Widths of the TPN network (models.tpn_net.TPN)."""
-    action_embed: int = 32
-    mlp: int = 256
+    """The TPN network's settings (models.tpn_net.TPN; its other widths follow the base's
+    LSTM width, as the release's)."""
+    action_embed: int = 6
     top_k: int = 10
 
 
@@ -75,10 +75,9 @@ class TPNConfig(run_fields(updates_per_chunk=10, eval_every_chunks=5,
     # run_dir "": <base_dir>/tpn): updates_per_chunk, eval_every_chunks,
     # eval_episodes_per_room_type, checkpoint_every_chunks, keep_checkpoints, seed, run_dir
     base_dir: str = ""                # the trained navigation run (its best-on-val params)
-    # the network (models.tpn_net.TPN)
-    action_embed: int = 32
-    mlp: int = 256
-    top_k: int = 10
+    # the network (models.tpn_net.TPN; the release's head, other widths from the base's)
+    action_embed: int = 6             # width of the embedded policy probabilities
+    top_k: int = 10                   # memory slots read per step
     # the external memory (deadlock detection)
     deadlock: Detector = "visited"         # visited (revisited state or failed move) | cosine
     cosine_threshold: float = 0.99    # cosine: global feature match with an earlier step
@@ -147,7 +146,7 @@ FIELDS = {f.name for f in dataclasses.fields(TPNConfig)}
 
 # The range of every numeric TPNConfig field.
 FIELD_RANGES: dict[str, Range] = {
-    **{f: COUNT for f in ("action_embed", "mlp", "top_k", "signature_dim", "num_envs",
+    **{f: COUNT for f in ("action_embed", "top_k", "signature_dim", "num_envs",
                           "total_episodes")},
     **RUN_RANGES,
     "episode_cap": EPISODE_CAP,
@@ -169,8 +168,24 @@ def get_tpn_config(**fields) -> TPNConfig:
     return cfg.validate()
 
 
+# The fields of the TPN network before the release's head (issue 39): a config.json
+# with one of them is a stage-2 run whose parameters this TPN cannot read.
+OLD_HEAD_FIELDS = ("mlp",)
+
+
 def load_tpn_config(run_dir: str | Path) -> TPNConfig:
-    """The TPNConfig saved in a stage-2 run directory; clear errors otherwise."""
+    """The TPNConfig saved in a stage-2 run directory; clear errors otherwise (a run of the
+    TPN head before issue 39 is refused: its parameters do not fit this network)."""
+    path = Path(run_dir) / "config.json"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError):
+        doc = None                        # read_config says what is wrong with it
+    if isinstance(doc, dict) and doc.get("stage") == "tpn" and \
+            any(f in doc for f in OLD_HEAD_FIELDS):
+        raise ValueError(f"{path}: a stage-2 run of the TPN head before the release's "
+                         "(issue 39; it has the field 'mlp'): its parameters do not fit "
+                         "this TPN network; train stage 2 again (docs/tpn.md)")
     return read_config(run_dir, TPNConfig, "tpn", READABLE_VERSIONS, renames=OLD_RENAMES)
 
 

@@ -65,9 +65,8 @@ IMPLS = ("auto", "dense", "lowrank")
 
 
 def build_tpn(nav_cfg, cfg: TPNNetwork) -> TPN:
-    """The TPN network for a navigation config (its hidden width) and TPN widths."""
-    return TPN(hidden=nav_cfg.hidden, action_embed=cfg.action_embed, mlp=cfg.mlp,
-               top_k=cfg.top_k)
+    """The TPN network for a navigation config (its hidden width) and TPN settings."""
+    return TPN(hidden=nav_cfg.hidden, action_embed=cfg.action_embed, top_k=cfg.top_k)
 
 
 def longest_episode() -> int:
