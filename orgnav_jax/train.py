@@ -77,13 +77,15 @@ RESUME_TPN_OPTIONS = {"run_dir", "total_episodes", "base_dir"}
 # presets that run both stages: the navigation preset, then its TPN, evaluated with the
 # test-time learning rate chosen on val (tpn.config.TPN_LR; README, Tables 1-2)
 TPN_PIPELINES = {"baseline_tpn": "baseline", "full": "org_il"}
+DEFAULT_PRESET = "small"      # --preset when none is given (None: a resume keeps the run's)
 
 
 def parser() -> argparse.ArgumentParser:
     ap = _parser("python -m orgnav_jax.train", "nav")
-    ap.add_argument("--preset", default="small", choices=sorted(TRAIN_PRESETS) + sorted(TPN_PIPELINES),
-                    help="a training preset; baseline_tpn and full (ORG + IL + TPN) also train "
-                         "the TPN (stage 2) on the result")
+    ap.add_argument("--preset", default=None, choices=sorted(TRAIN_PRESETS) + sorted(TPN_PIPELINES),
+                    help=f"a training preset (default {DEFAULT_PRESET}); baseline_tpn and full "
+                         "(ORG + IL + TPN) also train the TPN (stage 2) on the result; with "
+                         "--resume it must agree with the run's saved config")
     ap.add_argument("--tpn-lr", type=float, default=None,
                     help="baseline_tpn / full: test-time learning rate (default: the one "
                          "val chose, 1e-3; 0: no test-time update)")
@@ -125,7 +127,9 @@ def main_tpn(argv: list[str]) -> dict:
     else:
         if not fields.get("base_dir"):
             raise UserError("--stage tpn needs --base RUN_DIR (a finished training run)")
-        load_config(fields["base_dir"])      # a training run (clear errors otherwise)
+        base = load_config(fields["base_dir"])   # a training run (clear errors otherwise)
+        from orgnav_jax.training.runs import check_tpn_base
+        check_tpn_base(base, fields["base_dir"])    # not SAVN: one line, nothing written
         cfg = get_tpn_config(**fields)
     return run_tpn_stage(cfg, args.resume, args)
 
@@ -213,10 +217,29 @@ def nav_config(args, processes: int = 1):
     if args.resume and "run_dir" in overrides and not (set(overrides) - RESUME_OPTIONS):
         # resume with the saved config, in the directory given (a copied or moved run);
         # the budget may be extended, the scenes moved and the devices changed
-        return api.resume_config(seeds=args.seeds, **overrides)
+        cfg = api.resume_config(seeds=args.seeds, **overrides)
+        if args.preset is not None:
+            check_resume_preset(args.preset, cfg)
+        return cfg
+    preset = args.preset or DEFAULT_PRESET
     if pipeline:
-        overrides.setdefault("run_dir", f"runs/{args.preset}")
-    return get_config(pipeline or args.preset, **overrides)
+        overrides.setdefault("run_dir", f"runs/{preset}")
+    return get_config(pipeline or preset, **overrides)
+
+
+def check_resume_preset(preset: str, cfg) -> None:
+    """--resume continues a run with its saved config: a --preset given with it must
+    agree with that config on the fields the preset sets (UserError naming them, before
+    anything is written), rather than being ignored without a word."""
+    name = TPN_PIPELINES.get(preset, preset)
+    want = get_config(name)
+    keys = (set(TRAIN_PRESETS[name]) | {"model", "il", "savn"}) - RESUME_OPTIONS
+    differ = sorted(k for k in keys if getattr(cfg, k) != getattr(want, k))
+    if differ:
+        saved = ", ".join(f"{k} {getattr(cfg, k)!r}" for k in differ)
+        raise UserError(f"--preset {preset}: {cfg.run_dir} was trained with {saved}, not "
+                        f"what the preset sets; --resume continues a run with its saved "
+                        "config: drop --preset")
 
 
 def pipeline_tpn_fields(args) -> dict:

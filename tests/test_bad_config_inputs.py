@@ -265,6 +265,14 @@ TRAIN_CASES = [
     (["--keep-checkpoints", "0"], "'keep_checkpoints': 0"),
     (["--episode-cap", "1000000000"], "training needs ~768 GB of memory per chunk (episode_cap "
                                     "1000000000 x num_envs 64: ~768 GB); this machine has"),
+    # issue 38: SAVN segments that leave no inner step, and inner-step slots (87 TB) that
+    # reached XLA after the run directory was written
+    (["--preset", "dsavn", "--savn-steps", "31"], "config field 'savn_steps': 31, expected < "
+     "episode_cap 30 with savn: segments of 31 steps leave no inner step"),
+    (["--preset", "dsavn", "--savn-steps", "1000000", "--savn-inner-steps", "2000"],
+     "config field 'savn_steps': 1000000, expected < episode_cap 30"),
+    (["--preset", "dsavn", "--savn-steps", "29", "--savn-inner-steps", "1000000"],
+     "(num_envs 64 x savn_inner_steps 1000000 x savn_steps 29: ~"),
 ]
 
 
@@ -330,6 +338,28 @@ def test_tpn_cli_rejects_bad_configs_before_writing(tmp_path, base_run, cli_erro
         assert message in line, line
         assert not run_dir.exists()
     assert snapshot(base_run) == before
+
+
+def test_a_savn_run_is_no_tpn_base_and_resume_does_not_ignore_preset(tmp_path, tiny_dir,
+                                                                     cli_error):
+    """Issue 38: `--stage tpn --base` a SAVN run is one line before any write (it ended in
+    a flax scope error); `--preset P --resume` of a run P does not describe is refused
+    (it was ignored without a word); a preset that agrees is accepted."""
+    savn = tmp_path / "dsavn"
+    savn.mkdir()
+    (savn / "config.json").write_text(get_config("dsavn", scenes_dir=tiny_dir,
+                                                 run_dir=str(savn)).to_json())
+    before = snapshot(savn)
+    line = cli_error(train_cli.main, ["--stage", "tpn", "--base", savn,
+                                      "--run-dir", tmp_path / "tpn"])
+    assert f"--base {savn}: a SAVN run cannot be a TPN base" in line, line
+    line = cli_error(train_cli.main, ["--preset", "baseline", "--run-dir", savn, "--resume"])
+    assert f"--preset baseline: {savn} was trained with savn True" in line, line
+    assert "drop --preset" in line
+    assert not (tmp_path / "tpn").exists() and snapshot(savn) == before
+    args = train_cli.parser().parse_args(["--preset", "dsavn", "--run-dir", str(savn),
+                                          "--resume"])
+    assert train_cli.nav_config(args).savn                  # agrees: the saved config
 
 
 def test_tpn_cli_prints_the_budget_notice(tmp_path, base_run, monkeypatch, capsys):

@@ -91,8 +91,17 @@ def chunk_memory_bytes(cfg, scenes, params: int | None = None) -> dict[str, int]
     {"parameters": ..., "trail": ..., "trajectory": ..., "activations": ..., "scenes": ...}.
     `scenes`: the full SceneSet cfg trains on; `params`: the parameter count if known."""
     N, T = cfg.num_envs, cfg.rollout_len
+    if cfg.savn:          # an update runs num_envs whole episodes (training/savn.py)
+        T = cfg.episode_cap
     P = param_count(cfg, scenes) if params is None else params
-    return {
+    extra = {}
+    if cfg.savn:
+        # each row's low-rank fast weights: savn_inner_steps x savn_steps slots of the first
+        # LSTM layer's input, hidden state and 4 gates (input width taken as >= hidden),
+        # kept for the meta-gradient: about three copies
+        slots = cfg.savn_inner_steps * cfg.savn_steps
+        extra["fast_weights"] = 4 * N * slots * 6 * cfg.hidden * 3
+    return {**extra,
         # params and Adam's two moments, in and out of the chunk (the gradient and update
         # are far smaller than the activations)
         "parameters": 4 * P * 6,
@@ -157,7 +166,9 @@ NAV_DRIVERS = {"parameters": "the widths hidden {hidden}, fuse_channels {fuse_ch
                "trail": "episode_cap {episode_cap} x num_envs {num_envs}",
                "trajectory": "num_envs {num_envs} x rollout_len {rollout_len}",
                "activations": "num_envs {num_envs} x rollout_len {rollout_len} x widths",
-               "scenes": "the scene set"}
+               "scenes": "the scene set",
+               "fast_weights": "num_envs {num_envs} x savn_inner_steps {savn_inner_steps} "
+                               "x savn_steps {savn_steps}"}
 TPN_DRIVERS = {"parameters": "the base model's widths",
                "episodes": "num_envs {num_envs} x episode_cap {episode_cap}",
                "activations": "num_envs {num_envs} x episode_cap {episode_cap} x mlp {mlp}",

@@ -70,6 +70,9 @@ def preflight(cfg: TrainConfig, resumed=()):
     (training.memory.check_memory)."""
     from orgnav_jax.training.memory import check_memory
     cfg.validate()
+    if cfg.savn:
+        from orgnav_jax.training.savn import check_savn_config
+        check_savn_config(cfg)
     scenes = scenes_for(cfg)
     check_training_scenes(scenes, cfg)
     for run_dir in resumed:
@@ -79,10 +82,20 @@ def preflight(cfg: TrainConfig, resumed=()):
     return scenes
 
 
+def check_tpn_base(nav_cfg: TrainConfig, base_dir) -> None:
+    """A TPN's base must be a navigation run without SAVN: SAVN adapts by its own inner
+    steps and its parameters hold the learned loss beside the network (docs/savn.md)."""
+    if nav_cfg.savn:
+        raise ValueError(f"--base {base_dir}: a SAVN run cannot be a TPN base (SAVN adapts "
+                         "by its own inner steps; docs/savn.md): choose a run trained "
+                         "without savn")
+
+
 def preflight_tpn(cfg, nav_cfg: TrainConfig):
     """preflight for stage 2: the TPN config on the base run's config and scenes."""
     from orgnav_jax.training.memory import check_tpn_memory
     cfg.validate()
+    check_tpn_base(nav_cfg, cfg.base_dir)
     scenes = scenes_for(nav_cfg)
     check_training_scenes(scenes, nav_cfg)
     check_tpn_memory(cfg, nav_cfg, scenes)
