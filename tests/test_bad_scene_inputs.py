@@ -444,3 +444,25 @@ def test_an_episode_file_of_wrong_types_is_one_line(field, value, pattern, good,
     msg = cli_error(evaluate.main, episode_argv(good, path, tmp_path))
     assert re.fullmatch(rf"error: episode file {re.escape(str(path))}: {pattern}", msg), msg
     assert_unchanged(tmp_path, before)
+
+
+def test_seeds_widths_and_floorplan_numbers_out_of_range_are_one_line(offline, copy_of,
+                                                                       tmp_path, cli_error):
+    """Issue 38 (round two's last two): `scenes info tiny --seed -1` names --seed before any
+    build or progress bar; `build --global-dim 1000000000` (89 GB of projections) is
+    refused before anything is built; a FloorPlan number beyond int32 in an offline import
+    is named. Nothing is written."""
+    for argv in (["info", "tiny", "--seed", "-1"], ["show", "1", "--seed", "-5"],
+                 ["build", "--preset", "tiny", "--seed", "-1", "--out", tmp_path / "b"]):
+        assert f"error: --seed {argv[argv.index('--seed') + 1]}: expected an integer 0 <= " \
+               "seed" in cli_error(main, argv)
+    line = cli_error(main, ["build", "--preset", "tiny", "--global-dim", "1000000000",
+                            "--out", tmp_path / "b"])
+    assert "global_dim 1000000000, expected 1..4096" in line, line
+    assert not (tmp_path / "b").exists()
+    src = copy_of(offline)
+    (src / "FloorPlan422").rename(src / "FloorPlan99999999999")
+    before = snapshot(tmp_path)
+    line = cli_error(main, ["import", "--offline-dir", src, "--out", tmp_path / "o"])
+    assert "'FloorPlan99999999999': FloorPlan number beyond 2,147,483,647" in line, line
+    assert_unchanged(tmp_path, before)

@@ -160,3 +160,15 @@ def test_run_table_writes_curves_of_non_tpn_rows_and_never_fails(tmp_path, capsy
     assert run_table.write_curves(tmp_path, results) is None     # a warning, not an error
     assert "warning: no learning curves" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_run_given_twice_is_not_two_seeds(tmp_path, cli_error):
+    """Issue 38: `plots curves RUN RUN` (or the same run spelled two ways) is one line,
+    not a row of two seeds; nothing is written."""
+    from orgnav_jax.plots.cli import main
+    run = tmp_path / "run"
+    run.mkdir()
+    for argv in (["curves", run, run], ["curves", run, f"{tmp_path}/./run"],
+                 ["curves", f"a={run}", f"b={run}"]):
+        assert "given twice" in cli_error(main, argv)
+    assert list(run.iterdir()) == []

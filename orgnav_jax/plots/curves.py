@@ -28,13 +28,21 @@ def row_of(run_dir: str | Path) -> str:
 
 
 def group_runs(specs: Iterable[str | Path]) -> dict[str, list[Path]]:
-    """RUN_DIR or ROW=RUN_DIR entries -> {row: [run dirs]}, rows in order of appearance."""
+    """RUN_DIR or ROW=RUN_DIR entries -> {row: [run dirs]}, rows in order of appearance.
+    A run given twice (the same directory, however spelled) is a CurveError: it would
+    count as two seeds of its row."""
     rows: dict[str, list[Path]] = {}
+    seen: dict[Path, str] = {}
     for spec in specs:
         text = str(spec)
         row, eq, path = text.partition("=")
         if not eq or not row or "/" in row:     # a plain path (which may contain '=')
             row, path = row_of(text), text
+        key = Path(path).resolve()
+        if key in seen:
+            raise CurveError(f"{path}: given twice ({seen[key]} and {text}): each run is one "
+                             "seed of its row")
+        seen[key] = text
         rows.setdefault(row, []).append(Path(path))
     return rows
 

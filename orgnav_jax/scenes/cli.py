@@ -71,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--json", action="store_true", help="also print the summary as JSON")
     _add_offline_parsers(sub)
     args = parser.parse_args(argv)
+    seed = getattr(args, "seed", None)
+    if seed is not None and not 0 <= seed <= 2 ** 31 - 1:   # before any build or progress bar
+        raise ValueError(f"--seed {seed}: expected an integer 0 <= seed <= 2,147,483,647")
 
     if args.command == "import":
         return _import(args)

@@ -58,7 +58,11 @@ def floorplan_number(name: str, source: str) -> int:
     if not m:
         raise OfflineFormatError(f"{source}: scene folder {name!r} is not named FloorPlanN "
                                  "(N the AI2-THOR number, e.g. FloorPlan1, FloorPlan201)")
-    return int(m.group(1))
+    number = int(m.group(1))
+    if number > 2 ** 31 - 1:          # kept in an int32 array (SceneSet.floorplan)
+        raise OfflineFormatError(f"{source}: scene folder {name!r}: FloorPlan number beyond "
+                                 "2,147,483,647 (an int32)")
+    return number
 
 
 def room_type_and_split(number: int, source: str) -> tuple[int, int]:

@@ -8,6 +8,12 @@ from orgnav_jax.constants import FLOORPLAN_OFFSET, ROOM_TYPES, SPLITS
 from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
 
 
+# The widest feature channel count a preset may ask for: 8x the paper's 512 (ResNet-18).
+# A generated set holds (G, 49 x G)-ish projections and every model layer grows with the
+# width; --global-dim 1e9 asked for 89 GB before this bound.
+MAX_FEATURE_DIM = 4096
+
+
 @dataclasses.dataclass(frozen=True)
 class ScenePreset:
     """rooms_per_type: (train, val, test) rooms per room type (at most 20, 5, 5);
@@ -44,8 +50,10 @@ class ScenePreset:
                 raise ValueError(f"preset {self.name!r}: {n} {split} rooms per type, "
                                  f"expected 0..{hi} (AI2-THOR has 20/5/5)")
         for field in ("global_dim", "appearance_dim"):
-            if getattr(self, field) < 1:
-                raise ValueError(f"preset {self.name!r}: {field} must be >= 1")
+            if not 1 <= getattr(self, field) <= MAX_FEATURE_DIM:
+                raise ValueError(f"preset {self.name!r}: {field} {getattr(self, field)}, "
+                                 f"expected 1..{MAX_FEATURE_DIM} (the paper's features are "
+                                 "512 wide)")
         if self.room_sizes not in ROOM_SIZE_PROFILES:
             raise ValueError(f"preset {self.name!r}: room_sizes {self.room_sizes!r}, "
                              f"expected one of {sorted(ROOM_SIZE_PROFILES)}")
