@@ -1,0 +1,237 @@
+"""The authors' released networks (issue 39): the loader of their state dicts against a
+numpy transcription of the release's forward (`models/basemodel.py`, `graphmodel.py`),
+and each departure the parity check found, pinned so that it cannot come back. No torch:
+state dicts are built here with the release's names and shapes (small widths)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from orgnav_jax.models import release
+from orgnav_jax.models.navmodel import NavCarry
+from orgnav_jax.models.trunk import Trunk
+
+G, D, C, H, F, E = 8, 12, 22, 16, 8, 10     # global, appearance, categories, hidden, fuse, action
+
+
+def state_dict(kind: str, seed: int = 0, layers: int = 2) -> dict:
+    """Random weights and biases with the release's names, at small widths."""
+    rng = np.random.default_rng(seed)
+    shapes = {"conv1.weight": (F, G, 1, 1), "conv1.bias": (F,),
+              "embed_action.weight": (E, 6), "embed_action.bias": (E,),
+              "pointwise.weight": (F, F + C + E, 1, 1), "pointwise.bias": (F,),
+              "critic_linear_1.weight": (64, H), "critic_linear_1.bias": (64,),
+              "critic_linear_2.weight": (1, 64), "critic_linear_2.bias": (1,),
+              "actor_linear.weight": (6, H), "actor_linear.bias": (6,)}
+    for i in range(layers):
+        shapes.update({f"lstm.weight_ih_l{i}": (4 * H, 49 * F if i == 0 else H),
+                       f"lstm.weight_hh_l{i}": (4 * H, H),
+                       f"lstm.bias_ih_l{i}": (4 * H,), f"lstm.bias_hh_l{i}": (4 * H,)})
+    if kind == "BaseModel":
+        shapes.update({"detection_feature.weight": (49, D + 6), "detection_feature.bias": (49,)})
+    else:
+        shapes.update({"graph_detection_feature.0.weight": (32, D + 6),
+                       "graph_detection_feature.0.bias": (32,),
+                       "graph_detection_feature.2.weight": (49, 32),
+                       "graph_detection_feature.2.bias": (49,)})
+        for i in range(1, 6):
+            shapes[f"graph_detection_other_info_linear_{i}.weight"] = (C, 6 if i == 1 else C)
+            shapes[f"graph_detection_other_info_linear_{i}.bias"] = (C,)
+    return {k: (rng.standard_normal(s) / np.sqrt(s[-1] if len(s) > 1 else 4)).astype(np.float32)
+            for k, s in shapes.items()}
+
+
+def reference_step(sd, kind, state, appear, info, ind, probs, h, c):
+    """The release's forward for one sample (numpy transcription of its embedding() and
+    a3clstm()): state (G, 7, 7), appear (C, D), info (C, 5), ind (C, 1), probs (6,),
+    h, c (L, H) -> logits (6,), value (1,), h, c."""
+    relu = lambda x: np.maximum(x, 0)
+    lin = lambda name, x: x @ sd[f"{name}.weight"].T + sd[f"{name}.bias"]
+    if kind == "BaseModel":
+        t = relu(lin("detection_feature", np.concatenate([appear, info, ind], 1)))
+    else:
+        r = relu(lin("graph_detection_other_info_linear_1", np.concatenate([info, ind], 1))).T
+        for i in range(2, 6):
+            r = relu(lin(f"graph_detection_other_info_linear_{i}", r))
+        new_appear = (appear.T @ r).T
+        t = np.concatenate([new_appear, info, ind], 1)
+        t = relu(lin("graph_detection_feature.2", relu(lin("graph_detection_feature.0", t))))
+    conv = lambda name, x: (np.einsum("oi,ihw->ohw", sd[f"{name}.weight"][:, :, 0, 0], x)
+                            + sd[f"{name}.bias"][:, None, None])
+    a = np.broadcast_to(relu(lin("embed_action", probs))[:, None, None], (E, 7, 7))
+    x = np.concatenate([relu(conv("conv1", state)), t.reshape(C, 7, 7), a], 0)
+    x = relu(conv("pointwise", x)).reshape(-1)
+    sig = lambda z: 1 / (1 + np.exp(-z))
+    h, c = h.copy(), c.copy()
+    for i in range(h.shape[0]):
+        g = (sd[f"lstm.weight_ih_l{i}"] @ x + sd[f"lstm.bias_ih_l{i}"]
+             + sd[f"lstm.weight_hh_l{i}"] @ h[i] + sd[f"lstm.bias_hh_l{i}"])
+        gi, gf, gg, go = np.split(g, 4)
+        c[i] = sig(gf) * c[i] + sig(gi) * np.tanh(gg)
+        h[i] = sig(go) * np.tanh(c[i])
+        x = h[i]
+    return lin("actor_linear", x), lin("critic_linear_2", lin("critic_linear_1", x)), h, c
+
+
+def release_inputs(rng, n: int):
+    det = rng.random((n, C)) < 0.6
+    probs = rng.dirichlet(np.ones(6), n).astype(np.float32)
+    probs[0] = 0                                   # an episode's first step
+    ind = np.zeros((n, C, 1), np.float32)
+    ind[np.arange(n), rng.integers(0, C, n), 0] = 1
+    return (rng.random((n, G, 7, 7)).astype(np.float32),
+            (rng.random((n, C, D)) * det[..., None]).astype(np.float32),
+            np.concatenate([rng.random((n, C, 4)) * det[..., None],
+                            (rng.random((n, C)) * det)[..., None]], -1).astype(np.float32),
+            ind, probs)
+
+
+@pytest.mark.parametrize("kind", ["BaseModel", "GraphModel"])
+def test_loaded_release_model_computes_the_release_forward(kind):
+    """Two steps, hidden state carried: logits, value, h and c of every LSTM layer match
+    the numpy transcription of the release (so every ReLU, the linear critic, the ORG
+    wiring, 2 LSTM layers and the flattening order are as the release's)."""
+    sd = state_dict(kind)
+    net = release.load(kind, sd)
+    rng = np.random.default_rng(1)
+    state, appear, info, ind, probs = release_inputs(rng, 3)
+    h = (0.5 * rng.standard_normal((2, 3, H))).astype(np.float32)
+    c = (0.5 * rng.standard_normal((2, 3, H))).astype(np.float32)
+    ours, ref = (h, c), [(h[:, i], c[:, i]) for i in range(3)]
+    for _ in range(2):
+        logits, value, ours = net.step(state, appear, info, ind, probs, ours)
+        for i in range(3):
+            r_logits, r_value, rh, rc = reference_step(sd, kind, state[i], appear[i], info[i],
+                                                       ind[i], probs[i], *ref[i])
+            ref[i] = (rh, rc)
+            np.testing.assert_allclose(logits[i], r_logits, rtol=1e-4, atol=1e-5)
+            np.testing.assert_allclose(value[i], r_value, rtol=1e-4, atol=1e-5)
+            np.testing.assert_allclose(ours[0][:, i], rh, rtol=1e-4, atol=1e-5)
+            np.testing.assert_allclose(ours[1][:, i], rc, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda sd: sd.pop("pointwise.bias"), "missing parameter 'pointwise.bias'"),
+    (lambda sd: sd.update({"extra.weight": np.zeros((2, 2), np.float32)}),
+     "unexpected parameter 'extra.weight' for a BaseModel"),
+    (lambda sd: sd.update({"actor_linear.weight": np.zeros((5, H), np.float32)}),
+     r"'actor_linear.weight' has shape \(5, 16\), expected \(6, 16\)"),
+    (lambda sd: sd.update({"lstm.weight_hh_l1": np.zeros((4 * H, H + 1), np.float32)}),
+     r"'lstm.weight_hh_l1' has shape \(64, 17\), expected \(64, 16\)"),
+    (lambda sd: sd.update({"conv1.weight": np.zeros((F, G, 3, 3), np.float32)}),
+     "expected a 1x1 convolution"),
+    (lambda sd: sd.update({"embed_action.bias": np.zeros((E,), np.int64)}),
+     "expected a 1-d float array"),
+])
+def test_a_bad_state_dict_is_one_line_naming_the_parameter(change, message):
+    sd = state_dict("BaseModel")
+    change(sd)
+    with pytest.raises(release.ReleaseError, match=message) as err:
+        release.load("BaseModel", sd)
+    assert "\n" not in str(err.value)
+    with pytest.raises(release.ReleaseError, match="release kind 'Graph'"):
+        release.load("Graph", sd)
+
+
+def test_read_checkpoint_without_torch_or_file_is_one_line(tmp_path):
+    with pytest.raises(release.ReleaseError) as err:
+        release.read_checkpoint(tmp_path / "missing.dat")
+    assert "missing.dat" in str(err.value) and "\n" not in str(err.value)
+
+
+# ---- each departure of issue 39, pinned on the trunk itself ----------------------------
+
+@pytest.fixture(scope="module")
+def trunk_and_params():
+    trunk = Trunk(glob_channels=F, action_embed=E, fuse_channels=F, hidden=H)
+    glob = jnp.ones((2, 7, 7, G))
+    carry = trunk.initial_carry(2)
+    params = trunk.init(jax.random.PRNGKey(0), glob, jnp.zeros((2, C, 49)), jnp.zeros((2, 6)),
+                        carry)
+    return trunk, params, glob, carry
+
+
+def test_release_trunk_relus_category_maps_and_action_embedding(trunk_and_params):
+    """Negative category maps and a negative action embedding reach the LSTM as zeros."""
+    trunk, params, glob, _ = trunk_and_params
+    embed = lambda p, maps, prev: trunk.apply(p, glob, maps, prev, method=trunk.embed)
+    maps = jax.random.normal(jax.random.PRNGKey(1), (2, C, 49))
+    probs = jax.nn.softmax(jax.random.normal(jax.random.PRNGKey(2), (2, 6)))
+    np.testing.assert_allclose(embed(params, maps, probs),
+                               embed(params, jnp.maximum(maps, 0), probs), rtol=1e-6)
+    assert not np.allclose(embed(params, maps, probs), embed(params, maps * 0, probs))
+    neg = jax.tree_util.tree_map(lambda x: x, params)          # an embedding < 0 everywhere
+    dense = neg["params"]["action_dense"]
+    dense["kernel"], dense["bias"] = -jnp.abs(dense["kernel"]), -jnp.abs(dense["bias"]) - 0.1
+    np.testing.assert_allclose(embed(neg, maps, probs), embed(neg, maps, 3 * probs), rtol=1e-6)
+    assert not np.allclose(embed(params, maps, probs), embed(params, maps, 3 * probs))
+
+
+def test_release_critic_is_affine_in_the_lstm_output(trunk_and_params):
+    """The value recur returns is (h K1 + b1) K2 + b2 of its own LSTM output h."""
+    trunk, params, _, carry = trunk_and_params
+    p = params["params"]
+    gates = 3 * jax.random.normal(jax.random.PRNGKey(2), (2, 4 * H))
+    _, value, _, h = trunk.apply(params, gates, carry, method=trunk.recur)
+    hidden = h @ p["critic_hidden"]["kernel"] + p["critic_hidden"]["bias"]
+    assert (hidden < 0).any()                 # a ReLU between the layers would change it
+    np.testing.assert_allclose(value, (hidden @ p["critic"]["kernel"] + p["critic"]["bias"])[:, 0],
+                               rtol=1e-5, atol=1e-6)
+
+
+def test_release_trunk_has_two_lstm_layers_and_two_dropout_sites(trunk_and_params):
+    trunk, params, glob, carry = trunk_and_params
+    assert trunk.lstm_layers == 2 and len(carry) == 2
+    assert trunk.dropout_channels() == F + F
+    maps = jax.random.normal(jax.random.PRNGKey(1), (2, C, 49))
+    embed = lambda drop: trunk.apply(params, glob, maps, jnp.zeros((2, 6)), drop,
+                                     method=trunk.embed)
+    ones = jnp.ones((2, 7, 7, 2 * F))
+    np.testing.assert_allclose(embed(ones), embed(None), rtol=1e-6)
+    # everything after the fusion layer dropped: the LSTM sees zeros (its gates = bias)
+    bias = params["params"]["lstm_0"]["bias"]
+    np.testing.assert_allclose(embed(ones.at[..., F:].set(0.0)),
+                               jnp.broadcast_to(bias, (2, 4 * H)), atol=1e-6)
+    assert not np.allclose(embed(ones.at[..., :F].set(0.0)), embed(ones))
+
+
+def test_release_init_gives_small_actor_logits_and_zero_biases():
+    """The release's initialisation: each actor unit's weights have norm 0.01
+    (norm_col_init), so unit-variance LSTM outputs give logits of std about 0.01 (flax's
+    default gave ~1); every bias is 0; the global 1x1 kernel has the ReLU gain."""
+    from orgnav_jax.models import build_model, init_params
+    from orgnav_jax.scenes import load_scenes
+    from orgnav_jax.training.config import get_config
+    scenes = load_scenes("tiny", 0, None).split_view("train")
+    params = init_params(build_model(get_config("tiny"), scenes), jax.random.PRNGKey(0), scenes)
+    p = params["params"]["trunk"]
+    np.testing.assert_allclose(jnp.linalg.norm(p["actor"]["kernel"], axis=0), 0.01, rtol=1e-5)
+    x = jax.random.normal(jax.random.PRNGKey(1), (4096, p["actor"]["kernel"].shape[0]))
+    assert 0.008 < float((x @ p["actor"]["kernel"]).std()) < 0.012
+    np.testing.assert_allclose(jnp.linalg.norm(p["critic"]["kernel"], axis=0), 1.0, rtol=1e-5)
+    for path, leaf in jax.tree_util.tree_leaves_with_path(params):
+        if "bias" in str(path[-1]):
+            assert not np.any(np.asarray(leaf)), path
+    k = p["global_1x1"]["kernel"]
+    bound = np.sqrt(2.0) * np.sqrt(6.0 / sum(k.shape))
+    assert float(jnp.abs(k).max()) <= bound and float(jnp.abs(k).max()) > 0.8 * bound
+
+
+def test_previous_action_input_is_the_previous_steps_probabilities():
+    """The carry holds softmax(logits) of the step; zeros start an episode; 'onehot'
+    reads the env's one-hot instead."""
+    from orgnav_jax.models import previous_action
+    from orgnav_jax.models.navmodel import NavModel
+    from orgnav_jax.models.encoders import BaselineEncoder
+    model = NavModel(BaselineEncoder(), Trunk(glob_channels=F, fuse_channels=F, hidden=H))
+    carry = model.initial_carry(2)
+    onehot = jax.nn.one_hot(jnp.array([1, 4]), 6)
+    np.testing.assert_array_equal(previous_action(model, onehot, carry), 0.0)
+    probs = jax.nn.softmax(jnp.arange(12.0).reshape(2, 6))
+    carry = NavCarry(carry.lstm, probs)
+    np.testing.assert_array_equal(previous_action(model, onehot, carry), probs)
+    np.testing.assert_array_equal(previous_action(model.clone(prev_action="onehot"), onehot,
+                                                  carry), onehot)
