@@ -49,13 +49,17 @@ class LoadedPolicy:
 
 
 def load_policy(policy: str | None = None, run_dir: str | None = None,
-                tpn_dir: str | None = None, **test_time) -> LoadedPolicy:
+                tpn_dir: str | None = None, release_checkpoint: str | None = None,
+                release_kind: str = "GraphModel", **test_time) -> LoadedPolicy:
     """One of: a named policy ('random', 'expert'), a training run's best-on-val model
-    (run_dir), or a stage-2 run (tpn_dir: its base with TPN's test-time updates;
-    test_time overrides tpn.config.TEST_TIME_FIELDS)."""
+    (run_dir), a stage-2 run (tpn_dir: its base with TPN's test-time updates;
+    test_time overrides tpn.config.TEST_TIME_FIELDS), or a checkpoint of the authors'
+    release (release_checkpoint, of release_kind: models/release.py; greedy, on the
+    scenes the caller names, whose feature widths must be the checkpoint's)."""
     from orgnav_jax import evaluation
-    if sum(x is not None for x in (policy, run_dir, tpn_dir)) > 1:
-        raise UserError("give one of a policy name, a run directory or a TPN run directory")
+    if sum(x is not None for x in (policy, run_dir, tpn_dir, release_checkpoint)) > 1:
+        raise UserError("give one of a policy name, a run directory, a TPN run directory or "
+                        "a release checkpoint")
     if test_time and tpn_dir is None:
         from orgnav_jax.tpn.config import TEST_TIME_FIELDS
         options = ", ".join("--" + f.replace("_", "-") for f in TEST_TIME_FIELDS)
@@ -71,6 +75,13 @@ def load_policy(policy: str | None = None, run_dir: str | None = None,
         pol, params, run_cfg = load_run_policy(run_dir)
         return LoadedPolicy(pol, params, Path(run_dir).name, run_cfg.scene_preset,
                             run_cfg.scenes_dir, run_cfg.scene_seed, from_run=True)
+    if release_checkpoint is not None:
+        from orgnav_jax.constants import IMAGE_SIZE
+        from orgnav_jax.models import release
+        from orgnav_jax.training.runs import model_policy
+        net = release.load(release_kind, release.read_checkpoint(release_checkpoint))
+        name = f"{Path(release_checkpoint).stem}-{release_kind}"
+        return LoadedPolicy(model_policy(net.model, name, float(IMAGE_SIZE)), net.params, name)
     policies = {"random": evaluation.random_policy, "expert": evaluation.expert_policy}
     name = policy or "random"
     if name not in policies:

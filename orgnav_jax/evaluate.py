@@ -5,6 +5,8 @@
     python -m orgnav_jax.evaluate --episodes runs/eval/episodes-small-test.json ...
     python -m orgnav_jax.evaluate --checkpoint runs/small --split test
     python -m orgnav_jax.evaluate --tpn runs/small/tpn --when all   # TPN-all
+    python -m orgnav_jax.evaluate --release-checkpoint model.dat --release-kind GraphModel \
+        --scenes data/offline_import --split test     # the authors' trained weights
 
 The episode set is sampled with --episode-seed (250 per room type) and written next to
 the results, or replayed from --episodes. Results: a JSON file (overall, per room type,
@@ -55,6 +57,13 @@ def parser() -> argparse.ArgumentParser:
     who.add_argument("--checkpoint", metavar="RUN_DIR", help="a training run directory")
     who.add_argument("--tpn", metavar="TPN_RUN_DIR",
                      help="a stage-2 run: its base model with TPN's test-time updates")
+    who.add_argument("--release-checkpoint", metavar="FILE",
+                     help="a checkpoint of the authors' release (a torch .dat state dict, "
+                          "needs orgnav_jax[release], or an .npz of one); give --scenes "
+                          "with its feature widths (e.g. imported offline data)")
+    ap.add_argument("--release-kind", default="GraphModel",
+                    choices=("BaseModel", "GraphModel", "MetaMemoryGraphModel"),
+                    help="the release's model class of --release-checkpoint")
     ap.add_argument("--split", choices=("val", "test"), default="test")
     ap.add_argument("--scene-preset", "--preset", dest="preset", default="small",
                     help="scene preset (built once, cached); --preset is the old name")
@@ -84,7 +93,8 @@ def main(argv: list[str] | None = None) -> dict:
         check_output_file(args.out, is_results_json, api.RESULTS, inputs=(args.episodes,))
     from orgnav_jax.tpn.config import tpn_overrides_from_args
     loaded = api.load_policy(policy=args.policy, run_dir=args.checkpoint, tpn_dir=args.tpn,
-                             **tpn_overrides_from_args(args))
+                             release_checkpoint=args.release_checkpoint,
+                             release_kind=args.release_kind, **tpn_overrides_from_args(args))
     if not (args.checkpoint or args.tpn):
         loaded.scene_preset = args.preset
     result = api.evaluate(loaded, args.split, scenes_dir=args.scenes, episodes=args.episodes,

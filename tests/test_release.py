@@ -235,3 +235,35 @@ def test_previous_action_input_is_the_previous_steps_probabilities():
     np.testing.assert_array_equal(previous_action(model, onehot, carry), probs)
     np.testing.assert_array_equal(previous_action(model.clone(prev_action="onehot"), onehot,
                                                   carry), onehot)
+
+
+def test_evaluate_cli_runs_a_release_checkpoint_and_refuses_other_widths(tmp_path, tiny_scenes,
+                                                                         capsys):
+    """`python -m orgnav_jax.evaluate --release-checkpoint F.npz --release-kind K`: a state
+    dict of the scenes' feature widths evaluates (as the release: pixel boxes); one of
+    other widths, or a missing file, is one line and exit 2 with nothing written."""
+    from orgnav_jax import evaluate
+    global G, D
+    widths = (G, D)
+    try:
+        G, D = tiny_scenes.global_dim, tiny_scenes.appearance_dim
+        good = tmp_path / "graph.npz"
+        np.savez(good, **state_dict("GraphModel"))
+    finally:
+        G, D = widths
+    np.savez(tmp_path / "small.npz", **state_dict("BaseModel"))
+    out = tmp_path / "r.json"
+    result = evaluate.main(["--release-checkpoint", str(good), "--scene-preset", "tiny",
+                            "--split", "val", "--episodes-per-room-type", "3", "--quiet",
+                            "--out", str(out)])
+    assert result["overall"]["episodes"] == 12 and out.exists()
+    from orgnav_jax.errors import run_cli
+    for path, kind, words in ((tmp_path / "small.npz", "BaseModel", "feature"),
+                              (tmp_path / "none.dat", "GraphModel", "none.dat: no such file")):
+        bad_out = tmp_path / f"{kind}.json"
+        code = run_cli(evaluate.main, ["--release-checkpoint", str(path), "--release-kind", kind,
+                                       "--scene-preset", "tiny", "--quiet", "--out",
+                                       str(bad_out)])
+        err = capsys.readouterr().err
+        assert code == 2 and words in err and len(err.strip().splitlines()) == 1, err
+        assert not bad_out.exists()

@@ -233,22 +233,30 @@ def load(kind: str, state_dict: dict) -> ReleaseNet:
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """A release checkpoint (`torch.save(model.state_dict(), path)`, e.g. its `.dat`
-    files) -> {name: numpy array}. Needs torch (pip install 'orgnav_jax[release]')."""
+    """A release checkpoint -> {name: numpy array}: a `.dat`/`.pt` file of
+    `torch.save(model.state_dict(), path)` (needs torch: pip install
+    'orgnav_jax[release]'), or a `.npz` of the same names (numpy only)."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ReleaseError(f"{path}: no such file (expected a release checkpoint: a torch "
+                           "state dict, .dat, or an .npz of one)")
+    if path.endswith(".npz"):
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except (OSError, ValueError) as e:
+            raise ReleaseError(f"{path}: not a readable .npz ({e})") from None
     try:
         import torch
     except ImportError:
-        raise ReleaseError(f"{path}: reading a release checkpoint needs torch: "
-                           "pip install 'orgnav_jax[release]'") from None
-    if not os.path.isfile(path):
-        raise ReleaseError(f"{path}: no such file (expected a release checkpoint, .dat)")
+        raise ReleaseError(f"{path}: reading a torch checkpoint needs torch: pip install "
+                           "'orgnav_jax[release]' (or save the state dict as .npz)") from None
     try:
         sd = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001  (torch raises many kinds on a bad file)
+        first = str(e).splitlines()[0] if str(e) else ""
         raise ReleaseError(f"{path}: not a torch state dict ({type(e).__name__}: "
-                           f"{str(e).splitlines()[0] if str(e) else ''})") from None
-    if isinstance(sd, dict) and "model" in sd and isinstance(sd["model"], dict):
-        sd = sd["model"]
+                           f"{first})") from None
     if not isinstance(sd, dict) or not all(hasattr(v, "numpy") for v in sd.values()):
         raise ReleaseError(f"{path}: expected a state dict {{name: tensor}}")
     return {k: v.detach().cpu().numpy() for k, v in sd.items()}

@@ -16,15 +16,19 @@ from orgnav_jax.training.config import TrainConfig, load_config
 
 
 @compiled_once
-def model_policy(model, name: str = "Model") -> Policy:
+def model_policy(model, name: str = "Model", box_scale: float = 1.0) -> Policy:
     """Greedy (argmax) actions of a NavModel; the LSTM carry resets at episode starts.
-    policy_params are the model's variables."""
+    policy_params are the model's variables. box_scale multiplies the boxes the model
+    reads (the release's models read pixel boxes: models/release.py)."""
     def init(batch, params):
         return model.initial_carry(batch)
 
     def act(params, carry, obs, key, scenes, fresh):
         carry = reset_carry(carry, fresh)
-        logits, _, carry, _ = model.apply(params, model_inputs(scenes, obs), carry)
+        inputs = model_inputs(scenes, obs)
+        if box_scale != 1.0:
+            inputs = inputs._replace(box=inputs.box * box_scale)
+        logits, _, carry, _ = model.apply(params, inputs, carry)
         return jnp.argmax(logits, -1).astype(jnp.int32), carry
 
     return Policy(name, init, act)
