@@ -274,6 +274,22 @@ def _ppo():
     return mod
 
 
+def test_ppo_example_bad_options_are_one_line_before_training(cli_error, capsys):
+    """Issue 38: examples/ppo_gymnax.py follows the CLIs' convention (run_cli): no
+    `success nan` for --eval-episodes 0, no traceback for --num-envs 0 or --scenes smal."""
+    ppo = _ppo()
+    for argv, message in ((["--eval-episodes", "0"], "--eval-episodes: expected an integer "
+                                                     ">= 1, got 0"),
+                          (["--num-envs", "0"], "--num-envs: expected an integer >= 1, got 0"),
+                          (["--num-envs", "6"], "num_envs 6 is not a multiple of "
+                                                "num_minibatches 4"),
+                          (["--scenes", "smal"], "unknown scene preset 'smal'")):
+        assert message in cli_error(ppo.main, argv)
+    assert "update" not in capsys.readouterr().out            # nothing trained
+    with pytest.raises(ValueError, match="num_envs .episodes.: expected an integer >= 1"):
+        ppo.evaluate(None, ppo.Config(), num_envs=0, policy="random")
+
+
 @pytest.mark.slow
 def test_ppo_example_beats_random_on_val_rooms(tiny_scenes):
     """examples/ppo_gymnax.py: PPO-GRU trained on the 8 tiny train rooms (fixed seed)
