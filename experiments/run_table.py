@@ -252,6 +252,9 @@ def row_name(text: str) -> str:
         raise argparse.ArgumentTypeError(
             f"unknown row {text!r}: expected one of {sorted(TABLE_ROWS)}, or BASE+VARIANT"
             f"[@LR] with VARIANT in {sorted(TPN_VARIANTS)}")
+    if plus and TABLE_ROWS[base].get("savn"):
+        raise argparse.ArgumentTypeError(f"row {text!r}: a SAVN run cannot be a TPN base "
+                                         "(docs/savn.md)")
     return text
 
 

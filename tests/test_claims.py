@@ -310,7 +310,8 @@ def test_run_table_bad_specs_and_outputs_are_one_line_and_write_nothing(table_di
              ({"seeds": [True]}, "field 'seeds': expected integers >= 0"),
              ({"rows": ["baseline", "nope"]}, "field 'rows': unknown row 'nope'"),
              ({"rows": [3]}, "field 'rows': expected row names"),
-             ({"rows": []}, "field 'rows': expected at least one row")]
+             ({"rows": []}, "field 'rows': expected at least one row"),
+             ({"rows": ["dsavn+tpn"]}, "a SAVN run cannot be a TPN base")]
     for change, message in cases:
         (work / "s.json").write_text(json.dumps(dict(good, **change)))
         assert message in cli_error(run_table.main, ["--spec", work / "s.json"])
