@@ -75,7 +75,7 @@ class NavModel(nn.Module):
         """Input gates (B, 4H), carry -> (logits (B, 6), value (B,), carry, LSTM output);
         the new carry holds this step's action probabilities."""
         logits, value, lstm, h = self.trunk.recur(gates, carry.lstm)
-        probs = jax.lax.stop_gradient(jax.nn.softmax(logits.astype(jnp.float32)))
+        probs = jax.lax.stop_gradient(jax.nn.softmax(logits)).astype(carry.probs.dtype)
         return logits, value, NavCarry(lstm, probs), h
 
     def __call__(self, inputs: ModelInputs, carry: NavCarry, train: bool = False):

@@ -39,11 +39,23 @@ from orgnav_jax.constants import FEATURE_GRID, IMAGE_SIZE, NUM_ACTIONS
 from orgnav_jax.models.encoders import BaselineEncoder
 from orgnav_jax.models.navmodel import ModelInputs, NavCarry, NavModel
 from orgnav_jax.models.org import ReleasedORGEncoder
+from orgnav_jax.models.tpn_net import TPN
 from orgnav_jax.models.trunk import Trunk
 
 KINDS = ("BaseModel", "GraphModel", "MetaMemoryGraphModel")
 ORG_LAYERS = 5            # graph_detection_other_info_linear_1 .. _5
 CELLS = FEATURE_GRID * FEATURE_GRID
+# MetaMemoryGraphModel's TPN head: torch module -> our TPN's (models/tpn_net.py)
+RELEASE_TPN = {
+    "meta_current_state_embedding.0": "rep_1", "meta_current_state_embedding.1": "rep_norm_1",
+    "meta_current_state_embedding.3": "rep_2", "meta_current_state_embedding.4": "rep_norm_2",
+    "meta_current_action_embedding": "prob_embed",
+    "meta_memory_embedding.0": "memory_1", "meta_memory_embedding.1": "memory_norm_1",
+    "meta_memory_embedding.3": "memory_2", "meta_memory_embedding.4": "memory_norm_2",
+    "meta_learning_residual_block.0": "block_1", "meta_learning_residual_block.1": "block_norm_1",
+    "meta_learning_residual_block.3": "block_2", "meta_learning_residual_block.4": "block_norm_2",
+    "meta_learning_predict.0": "predict_1", "meta_learning_predict.2": "predict_2",
+}
 
 
 class ReleaseError(ValueError):
@@ -113,12 +125,8 @@ def _expected_names(kind: str, layers: int) -> set[str]:
         linear += ["graph_detection_feature.0", "graph_detection_feature.2"]
         linear += [f"graph_detection_other_info_linear_{i}" for i in range(1, ORG_LAYERS + 1)]
     if kind == "MetaMemoryGraphModel":
-        from orgnav_jax.models.tpn_release import TPN_LINEAR, TPN_NORMS
-        linear += TPN_LINEAR
-        names = {f"{n}.{p}" for n in TPN_NORMS for p in ("weight", "bias")}
-    else:
-        names = set()
-    names |= {f"{n}.{p}" for n in linear + ["conv1", "pointwise"] for p in ("weight", "bias")}
+        linear += list(RELEASE_TPN)          # its LayerNorms have a weight and a bias too
+    names = {f"{n}.{p}" for n in linear + ["conv1", "pointwise"] for p in ("weight", "bias")}
     names |= {f"lstm.{p}_{g}_l{i}" for i in range(layers) for p in ("weight", "bias")
               for g in ("ih", "hh")}
     return names
@@ -226,10 +234,30 @@ def load(kind: str, state_dict: dict) -> ReleaseNet:
                                     {"params": {"encoder": enc_params, "trunk": trunk_params}})
     net = ReleaseNet(kind, model, params)
     if kind == "MetaMemoryGraphModel":
-        from orgnav_jax.models.tpn_release import load_tpn
-        tpn, tpn_params = load_tpn(sd, H)
+        tpn, tpn_params = _tpn(sd, H)
         net = dataclasses.replace(net, tpn=tpn, tpn_params=tpn_params)
     return net
+
+
+def _tpn(sd: dict, hidden: int):
+    """The TPN head of a MetaMemoryGraphModel -> (TPN module, its variables); every shape
+    checked against the module's (Linear -> Dense kernel, LayerNorm weight -> scale)."""
+    embed = _get(sd, "meta_current_action_embedding.weight", 2).shape[0]
+    tpn = TPN(hidden=hidden, action_embed=embed)
+    like = jax.eval_shape(tpn.init, jax.random.PRNGKey(0), jnp.zeros((1, 1, hidden)),
+                          jnp.zeros((1, 1, NUM_ACTIONS)), jnp.ones((1, 1), bool))["params"]
+    params = {}
+    for name, ours in RELEASE_TPN.items():
+        want = like[ours]
+        if "scale" in want:                                     # a LayerNorm
+            w, b = _get(sd, f"{name}.weight", 1), _get(sd, f"{name}.bias", 1)
+            _expect(f"{name}.weight", w, want["scale"].shape)
+            _expect(f"{name}.bias", b, want["bias"].shape)
+            params[ours] = {"scale": w, "bias": b}
+        else:
+            n_in, n_out = want["kernel"].shape
+            params[ours] = _dense(sd, name, n_in=n_in, n_out=n_out)
+    return tpn, jax.tree_util.tree_map(jnp.asarray, {"params": params})
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, np.ndarray]:

@@ -194,8 +194,9 @@ TABLE_ROWS: dict[str, dict] = {
     "org_il": dict(model="org", il="deadlock"),           # ORG + IL
     "org_released": dict(model="org_released", il="none"),
     "dsp": dict(model="dsp", il="none"),                  # D-SP (prior knowledge graph)
-    "savn": dict(model="we", il="none", savn=True),       # SAVN (word-embedding target)
-    "dsavn": dict(model="baseline", il="none", savn=True),   # D-SAVN (detections)
+    # SAVN's release has one LSTM layer (an LSTMCell: allenai/savn models/basemodel.py)
+    "savn": dict(model="we", il="none", savn=True, lstm_layers=1),   # SAVN (word embedding)
+    "dsavn": dict(model="baseline", il="none", savn=True, lstm_layers=1),   # D-SAVN
 }
 # The rows' dropout: val chose 0 over the release's 0.25 (Baseline, seed 100, 2 M env
 # steps: 69.0 vs 65.5 val success; experiments/results/val_choices, docs/results.md).

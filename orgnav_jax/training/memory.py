@@ -119,15 +119,15 @@ def tpn_memory_bytes(cfg, nav_cfg, scenes, params: int | None = None) -> dict[st
     episodes (num_envs x episode_cap steps: LSTM outputs, env trails), the TPN's activations
     over them and its (episode_cap x episode_cap) causal attention per episode (forward and
     backward), the base's parameters and the scenes."""
+    from orgnav_jax.models.tpn_net import step_floats
     N, T, H = cfg.num_envs, cfg.episode_cap, nav_cfg.hidden
-    k, E = min(cfg.top_k, T), cfg.action_embed
     sig = 4 * cfg.signature_dim if cfg.deadlock == "cosine" else 0
     P = param_count(nav_cfg, scenes) if params is None else params
     return {
         "parameters": 4 * P * 2,
         "episodes": N * T * (4 * (H + A + 1) + 3 + sig)          # EpisodeBatch, detector
                     + 4 * N * _step_floats(nav_cfg, scenes),     # one step of the base
-        "activations": 4 * 2 * N * T * (6 * H + 2 * E + k * (H + E) + 6 * cfg.mlp + 2 * A),
+        "activations": 4 * 2 * N * T * step_floats(H, cfg.action_embed, min(cfg.top_k, T)),
         "attention": 4 * N * T * T,      # the (T, T) scores of each episode (XLA fuses
                                          # the mask and the top-k into them)
         "trail": 4 * N * (T + 1) * TRAIL_COPIES,
@@ -171,7 +171,8 @@ NAV_DRIVERS = {"parameters": "the widths hidden {hidden}, fuse_channels {fuse_ch
                                "x savn_steps {savn_steps}"}
 TPN_DRIVERS = {"parameters": "the base model's widths",
                "episodes": "num_envs {num_envs} x episode_cap {episode_cap}",
-               "activations": "num_envs {num_envs} x episode_cap {episode_cap} x mlp {mlp}",
+               "activations": "num_envs {num_envs} x episode_cap {episode_cap} x the "
+                              "base's hidden width",
                "attention": "num_envs {num_envs} x episode_cap {episode_cap}^2",
                "trail": "num_envs {num_envs} x episode_cap {episode_cap}",
                "scenes": "the scene set"}
