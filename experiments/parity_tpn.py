@@ -69,6 +69,7 @@ def torch_side(out: str, episodes: int, steps: int, seed: int, soft: bool, mirro
         def forward(self, emb, hc):
             return self.x.reshape(1, 1, H), hc
 
+    sd = {k: v.detach().numpy().copy() for k, v in tm.state_dict().items()}   # the whole model
     tm.lstm = StubLSTM()
     rng = np.random.default_rng(seed)
     xs = np.tanh(rng.standard_normal((episodes, steps, H))).astype(np.float32)
@@ -95,7 +96,6 @@ def torch_side(out: str, episodes: int, steps: int, seed: int, soft: bool, mirro
                     action_memory.append(a_out.squeeze())
                 meta[e, t] = meta_t.numpy()[0]
             assert len(state_memory) == steps - 1
-    sd = {k: v.detach().numpy() for k, v in tm.state_dict().items()}
     np.savez(out, xs=xs, probs=pr, meta=meta, commit=commit,
              **{"sd:" + k: v for k, v in sd.items()})
 

@@ -267,3 +267,39 @@ def test_evaluate_cli_runs_a_release_checkpoint_and_refuses_other_widths(tmp_pat
         err = capsys.readouterr().err
         assert code == 2 and words in err and len(err.strip().splitlines()) == 1, err
         assert not bad_out.exists()
+
+
+def test_meta_memory_graph_model_loads_its_tpn_head():
+    """MetaMemoryGraphModel = GraphModel + the TPN head: every meta_* Linear lands
+    transposed in its Dense, every LayerNorm in its scale and bias (the logits' parity with
+    the release's module: experiments/parity_tpn.py, docs/tpn.md); a misshapen head entry
+    is one line naming it."""
+    sd = state_dict("GraphModel")
+    rng = np.random.default_rng(5)
+    Hm = 2 * H + 6
+    head = {"meta_current_state_embedding.0": (H // 2, H), "meta_current_state_embedding.1": (H // 2,),
+            "meta_current_state_embedding.3": (H, H // 2), "meta_current_state_embedding.4": (H,),
+            "meta_current_action_embedding": (6, 6),
+            "meta_memory_embedding.0": (2 * H, H + 6), "meta_memory_embedding.1": (2 * H,),
+            "meta_memory_embedding.3": (H + 6, 2 * H), "meta_memory_embedding.4": (H + 6,),
+            "meta_learning_residual_block.0": (H, Hm), "meta_learning_residual_block.1": (H,),
+            "meta_learning_residual_block.3": (Hm, H), "meta_learning_residual_block.4": (Hm,),
+            "meta_learning_predict.0": (H, Hm), "meta_learning_predict.2": (6, H)}
+    for name, shape in head.items():
+        sd[f"{name}.weight"] = rng.standard_normal(shape).astype(np.float32)
+        sd[f"{name}.bias"] = rng.standard_normal(shape[:1]).astype(np.float32)
+    net = release.load("MetaMemoryGraphModel", sd)
+    p = net.tpn_params["params"]
+    for name, ours in release.RELEASE_TPN.items():
+        if len(head[name]) == 2:
+            np.testing.assert_array_equal(p[ours]["kernel"], sd[f"{name}.weight"].T)
+        else:
+            np.testing.assert_array_equal(p[ours]["scale"], sd[f"{name}.weight"])
+        np.testing.assert_array_equal(p[ours]["bias"], sd[f"{name}.bias"])
+    logits = net.tpn.apply(net.tpn_params, jnp.ones((1, 3, H)), jnp.full((1, 3, 6), 1 / 6),
+                           jnp.ones((1, 3), bool))
+    assert logits.shape == (1, 3, 6) and np.isfinite(logits).all()
+    sd["meta_memory_embedding.3.weight"] = np.zeros((H + 7, 2 * H), np.float32)
+    with pytest.raises(release.ReleaseError, match=r"'meta_memory_embedding.3.weight' has "
+                                                   r"shape \(23, 32\), expected \(22, 32\)"):
+        release.load("MetaMemoryGraphModel", sd)
