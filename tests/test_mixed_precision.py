@@ -65,7 +65,7 @@ def test_bfloat16_training_beats_random_on_the_val_rooms(tmp_path, tiny_dir):
     from orgnav_jax.training import loop
     from orgnav_jax.training.config import get_config
     cfg = get_config("tiny", scenes_dir=tiny_dir, run_dir=str(tmp_path / "run"),
-                     total_env_steps=163_840, dtype="bfloat16")
+                     total_env_steps=327_680, dtype="bfloat16")
     loop.train_seeds(cfg, [0, 1, 2], progress=False)
     results = [trained_and_random_success(tmp_path / f"run-s{s}", tiny_dir, "val")
                for s in range(3)]
