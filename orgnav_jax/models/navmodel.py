@@ -21,10 +21,10 @@ from typing import Callable, NamedTuple
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
-
 from flax import struct
 
-from orgnav_jax.constants import FEATURE_GRID, IMAGE_SIZE
+from orgnav_jax.constants import FEATURE_GRID, IMAGE_SIZE, NUM_ACTIONS
+from orgnav_jax.errors import choose
 from orgnav_jax.models.encoders import BaselineEncoder, WordEmbeddingEncoder
 from orgnav_jax.models.init import release_init
 from orgnav_jax.models.org import ORGEncoder, ReleasedORGEncoder, dsp_from_scenes
@@ -40,9 +40,6 @@ class ModelInputs(NamedTuple):
     target: jax.Array       # (B, C) target one-hot
     prev_action: jax.Array  # (B, 6) previous action: probabilities (or a one-hot)
     drop: jax.Array | None = None   # (B, 7, 7, dropout channels) mask; None = no dropout
-
-
-PREV_ACTION_INPUTS = ("probs", "onehot")
 
 
 @struct.dataclass
@@ -85,7 +82,8 @@ class NavModel(nn.Module):
         return self.recur(self.embed(inputs, train), carry)
 
     def initial_carry(self, batch: int) -> NavCarry:
-        return NavCarry(self.trunk.initial_carry(batch), jnp.zeros((batch, 6), jnp.float32))
+        return NavCarry(self.trunk.initial_carry(batch),
+                        jnp.zeros((batch, NUM_ACTIONS), jnp.float32))
 
     def dropout_shape(self, batch: int) -> tuple[int, ...]:
         """Shape of the trunk's dropout mask for a batch (see models.trunk.dropout_mask)."""
@@ -96,10 +94,8 @@ def previous_action(model: NavModel, onehot: jax.Array, carry: NavCarry) -> jax.
     """The previous-action input (B, 6) of a step: the carry's probabilities (release), or
     the env's one-hot `onehot` (prev_action="onehot"). Pure: usable outside apply (the
     rollout stores it in its trajectory so that the loss's replay sees the same input)."""
-    if model.prev_action not in PREV_ACTION_INPUTS:
-        raise ValueError(f"prev_action {model.prev_action!r}: expected one of "
-                         f"{list(PREV_ACTION_INPUTS)}")
-    return carry.probs if model.prev_action == "probs" else onehot
+    return choose({"probs": carry.probs, "onehot": onehot}, model.prev_action,
+                  "previous-action input (prev_action)")
 
 
 def compute_dtype(cfg):

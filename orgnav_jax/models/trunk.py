@@ -43,6 +43,7 @@ import jax.numpy as jnp
 from typing import Any
 
 from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS
+from orgnav_jax.errors import choose
 
 
 def cast(x, dtype):
@@ -94,9 +95,6 @@ class LSTMGates(nn.Module):
         return (c, h), h
 
 
-TRUNK_FORMS = ("release", "pre_parity")
-
-
 class Trunk(nn.Module):
     glob_channels: int = 64
     action_embed: int = 10
@@ -119,9 +117,8 @@ class Trunk(nn.Module):
 
     @property
     def release(self) -> bool:
-        if self.form not in TRUNK_FORMS:
-            raise ValueError(f"trunk form {self.form!r}: expected one of {list(TRUNK_FORMS)}")
-        return self.form == "release"
+        """Whether this is the release's form (else the pre-parity one)."""
+        return choose({"release": True, "pre_parity": False}, self.form, "trunk form")
 
     def dropout_channels(self) -> int:
         """Channels of the dropout mask: both sites' (release) or the global map's."""
