@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from orgnav_jax.constants import FEATURE_GRID, IMAGE_SIZE, NUM_ACTIONS
+from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS
 from orgnav_jax.models.encoders import BaselineEncoder
 from orgnav_jax.models.navmodel import ModelInputs, NavCarry, NavModel
 from orgnav_jax.models.org import ReleasedORGEncoder
@@ -159,10 +159,6 @@ class ReleaseNet:
                                       jnp.asarray(appear), jnp.asarray(info),
                                       jnp.asarray(indicator), jnp.asarray(action_probs), h, c)
         return np.asarray(logits), np.asarray(value), (np.asarray(h), np.asarray(c))
-
-    def release_inputs(self, inputs: ModelInputs) -> ModelInputs:
-        """Our scenes' inputs (boxes / 300) as the release saw them (pixel boxes)."""
-        return inputs._replace(box=inputs.box * IMAGE_SIZE)
 
 
 @partial(jax.jit, static_argnums=0)
