@@ -1,4 +1,5 @@
-"""ORG / released ORG / D-SP encoders, the adjacency picture, and trial-driven IL masks."""
+"""ORG / released ORG / D-SP encoders (the paper's, and the replace form of config versions
+<= 6), the adjacency picture, and trial-driven IL masks."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from orgnav_jax import constants as K
 from orgnav_jax import env
 from orgnav_jax.models import ModelInputs, build_model, init_params
 from orgnav_jax.models.org import (
-    DSPEncoder, ORGEncoder, ReleasedORGEncoder, as_static_matrix, cooccurrence_adjacency)
+    DSPEncoder, DSPReplaceEncoder, ORGEncoder, ReleasedORGEncoder, as_static_matrix,
+    cooccurrence_adjacency)
 from orgnav_jax.plots import anchor_pair_report, find_adjacency, plot_adjacency
 from orgnav_jax.training.config import get_config
 from orgnav_jax.training.losses import il_mask, imitation_loss
@@ -42,7 +44,8 @@ def _fake_scenes(n=6, d=D, g=5):
 ENCODER_MODULES = {
     "org": ORGEncoder(),
     "org_released": ReleasedORGEncoder(),
-    "dsp": DSPEncoder(as_static_matrix(cooccurrence_adjacency(_fake_scenes().present))),
+    "dsp_replace": DSPReplaceEncoder(
+        as_static_matrix(cooccurrence_adjacency(_fake_scenes().present))),
 }
 
 
@@ -63,7 +66,7 @@ def test_encoder_output_shape(name):
     assert out.shape == (B, C, 49) and np.isfinite(np.asarray(out)).all()
 
 
-@pytest.mark.parametrize("name", ["org", "org_released", "dsp"])
+@pytest.mark.parametrize("name", ["org", "org_released", "dsp", "dsp_replace"])
 def test_navmodel_with_each_encoder(name):
     """build_model / init_params / apply with each encoder (shapes only: traced, not run)."""
     scenes = _fake_scenes()
@@ -104,17 +107,98 @@ def test_org_permutation_equivariance():
     assert not np.allclose(np.asarray(apply(q, *x)), np.asarray(out), atol=1e-5)
 
 
-def test_dsp_permutation_equivariance():
-    """Permuting the inputs and the prior graph (P A P^T) permutes the D-SP output rows."""
+def test_dsp_replace_permutation_equivariance():
+    """Permuting the inputs and the prior graph (P A P^T) permutes the output rows of the
+    replace form of D-SP (model dsp_replace)."""
     A = cooccurrence_adjacency(_fake_scenes().present)
     perm = np.random.default_rng(2).permutation(C)
     x = _inputs(5)
-    params = _init("dsp")
-    enc_p = DSPEncoder(as_static_matrix(A[perm][:, perm]))
+    params = _init("dsp_replace")
+    enc_p = DSPReplaceEncoder(as_static_matrix(A[perm][:, perm]))
     out_p = jax.jit(enc_p.apply)(params, *(a[:, perm] for a in x))
-    out = _compiled("dsp")[1](params, *x)
+    out = _compiled("dsp_replace")[1](params, *x)
     np.testing.assert_allclose(np.asarray(out_p), np.asarray(out)[:, perm],
                                rtol=1e-5, atol=1e-5)
+
+
+def _dsp_and_baseline():
+    """(D-SP model, Baseline model, D-SP parameters, inputs, carry) at the tiny widths."""
+    scenes = _fake_scenes()
+    dsp = build_model(get_config("tiny", model="dsp"), scenes)
+    base = build_model(get_config("tiny", model="baseline"), scenes)
+    params = init_params(dsp, jax.random.PRNGKey(5), scenes)
+    # the last graph layer's inputs are >= 0 (ReLUs of >= 0 detection features): with a
+    # kernel >= 0 every node's value is alive (at init some draws leave it all at 0,
+    # docs/training.md)
+    g2 = params["params"]["encoder"]["graph_2"]
+    g2["kernel"] = jnp.abs(g2["kernel"])
+    app, box, conf, target = _inputs(6, batch=4)
+    inputs = ModelInputs(np.random.default_rng(7).standard_normal(
+        (4, 7, 7, scenes.global_dim)).astype(np.float32), app, box, conf, target,
+        np.full((4, K.NUM_ACTIONS), 1 / K.NUM_ACTIONS, np.float32))
+    carry = jax.tree_util.tree_map(lambda z: z + 0.1, dsp.initial_carry(4))
+    return dsp, base, params, inputs, carry
+
+
+def test_dsp_is_the_baseline_plus_a_graph_branch():
+    """D-SP as SAVN's release builds Scene Priors (models/gcn.py): with the graph branch's
+    output zeroed it computes the Baseline's function of the same parameters (the LSTM
+    input kernel's rows for the branch dropped), and the target's own detection reaches
+    the LSTM unblurred (its map is the Baseline's map of its own features only)."""
+    dsp, base, params, inputs, carry = _dsp_and_baseline()
+    enc = params["params"]["encoder"]
+    assert sorted(enc) == ["graph_0", "graph_1", "graph_2", "graph_out", "to_map"]
+    d6 = D + 6
+    assert [enc[f"graph_{i}"]["kernel"].shape for i in range(3)] == [(d6, d6), (d6, d6),
+                                                                     (d6, 1)]
+    hidden = get_config("tiny").hidden
+    assert enc["graph_out"]["kernel"].shape == (C, hidden)
+    kernel = params["params"]["trunk"]["lstm_0"]["input_kernel"]
+    flat = 49 * get_config("tiny").fuse_channels
+    assert kernel.shape[0] == flat + hidden            # the LSTM input grows by the branch
+    zeroed = jax.tree_util.tree_map(lambda x: x, params)
+    zeroed["params"]["encoder"]["graph_out"] = jax.tree_util.tree_map(
+        jnp.zeros_like, enc["graph_out"])
+    base_params = jax.tree_util.tree_map(lambda x: x, params)
+    base_params["params"]["encoder"] = {"to_map": enc["to_map"]}
+    base_params["params"]["trunk"]["lstm_0"] = dict(
+        params["params"]["trunk"]["lstm_0"], input_kernel=kernel[:flat])
+    out_dsp = jax.jit(dsp.apply)(zeroed, inputs, carry)
+    out_base = jax.jit(base.apply)(base_params, inputs, carry)
+    for a, b in zip(jax.tree_util.tree_leaves(out_dsp), jax.tree_util.tree_leaves(out_base)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
+    # and the branch matters when it is not zeroed
+    h_full = np.asarray(jax.jit(dsp.apply)(params, inputs, carry)[3])
+    assert np.abs(h_full - np.asarray(out_dsp[3])).max() > 1e-3
+    # the target's map depends on its own detection only; its neighbours reach the LSTM
+    # through the graph vector, not through the target's map
+    maps = jax.jit(lambda p, *x: dsp.apply(p, *x, method=lambda m, *a: m.encoder(*a)))
+    x = (inputs.app, inputs.box, inputs.conf, inputs.target)
+    t = np.argmax(np.asarray(inputs.target), -1)
+    other = (t + 1) % C
+    app2 = np.asarray(inputs.app).copy()
+    app2[np.arange(4), other] += 1.0
+    (m1, e1), (m2, e2) = maps(params, *x), maps(params, app2, *x[1:])
+    rows = np.arange(4)
+    np.testing.assert_array_equal(np.asarray(m1)[rows, t], np.asarray(m2)[rows, t])
+    assert not np.allclose(np.asarray(e1), np.asarray(e2))
+
+
+def test_old_dsp_runs_load_as_the_replace_form(tmp_path):
+    """A run saved with config version <= 6 and model "dsp" trained the replace form: it
+    loads as model dsp_replace (and evaluates as trained); a version-7 "dsp" stays dsp."""
+    import json
+    from orgnav_jax.training.config import CONFIG_VERSION, load_config
+    doc = json.loads(get_config("tiny", model="dsp").to_json())
+    for version, want in ((6, "dsp_replace"), (CONFIG_VERSION, "dsp")):
+        run = tmp_path / f"v{version}"
+        run.mkdir()
+        d = dict(doc, version=version)
+        if version == 6:      # a version-6 config lacks the fields added since
+            from orgnav_jax.training.config import V7_DEFAULTS
+            d = {k: v for k, v in d.items() if k not in V7_DEFAULTS}
+        (run / "config.json").write_text(json.dumps(d))
+        assert load_config(run).model == want
 
 
 def test_gradients_reach_the_adjacency():

@@ -27,7 +27,8 @@ from orgnav_jax.constants import FEATURE_GRID, IMAGE_SIZE, NUM_ACTIONS
 from orgnav_jax.errors import choose
 from orgnav_jax.models.encoders import BaselineEncoder, WordEmbeddingEncoder
 from orgnav_jax.models.init import release_init
-from orgnav_jax.models.org import ORGEncoder, ReleasedORGEncoder, dsp_from_scenes
+from orgnav_jax.models.org import (
+    ORGEncoder, ReleasedORGEncoder, dsp_from_scenes, dsp_replace_from_scenes)
 from orgnav_jax.models.trunk import Trunk
 from orgnav_jax.scenes.sceneset.features import gather_features
 
@@ -66,7 +67,8 @@ class NavModel(nn.Module):
         """The non-recurrent part: inputs (B, ...) -> first LSTM layer's input gates (B, 4H).
         inputs.prev_action is used as given (see previous_action)."""
         maps = self.encoder(inputs.app, inputs.box, inputs.conf, inputs.target, train)
-        return self.trunk.embed(inputs.glob, maps, inputs.prev_action, inputs.drop)
+        maps, extra = maps if isinstance(maps, tuple) else (maps, None)
+        return self.trunk.embed(inputs.glob, maps, inputs.prev_action, inputs.drop, extra)
 
     def recur(self, gates, carry: NavCarry):
         """Input gates (B, 4H), carry -> (logits (B, 6), value (B,), carry, LSTM output);
@@ -111,7 +113,11 @@ ENCODERS: dict[str, Callable] = {
     "org": lambda cfg, scenes: ORGEncoder(dtype=compute_dtype(cfg)),
     "org_released": lambda cfg, scenes: ReleasedORGEncoder(
         wiring="release" if cfg.net == "release" else "alternate", dtype=compute_dtype(cfg)),
-    "dsp": lambda cfg, scenes: dsp_from_scenes(scenes, compute_dtype(cfg)),
+    # D-SP as the paper built it (SAVN's release gcn.py): the Baseline plus a graph
+    # branch whose vector (the LSTM width) joins the LSTM input (models/org.py)
+    "dsp": lambda cfg, scenes: dsp_from_scenes(scenes, cfg.hidden, compute_dtype(cfg)),
+    # D-SP before issue 40 (config version <= 6 "dsp"): the graph replaces the maps
+    "dsp_replace": lambda cfg, scenes: dsp_replace_from_scenes(scenes, compute_dtype(cfg)),
 }
 
 
@@ -120,10 +126,12 @@ def build_model(cfg, scenes) -> NavModel:
     scenes, for encoders that need statistics of them (e.g. a prior knowledge graph)."""
     if cfg.model not in ENCODERS:
         raise ValueError(f"unknown model {cfg.model!r}: expected one of {sorted(ENCODERS)}")
+    encoder = ENCODERS[cfg.model](cfg, scenes)
     trunk = Trunk(glob_channels=cfg.glob_channels, action_embed=cfg.action_embed,
                   fuse_channels=cfg.fuse_channels, hidden=cfg.hidden,
-                  lstm_layers=cfg.lstm_layers, dtype=compute_dtype(cfg), form=cfg.net)
-    return NavModel(ENCODERS[cfg.model](cfg, scenes), trunk, cfg.prev_action)
+                  lstm_layers=cfg.lstm_layers, dtype=compute_dtype(cfg), form=cfg.net,
+                  extra_features=getattr(encoder, "extra_features", 0))
+    return NavModel(encoder, trunk, cfg.prev_action)
 
 
 def init_params(model: NavModel, key: jax.Array, scenes):

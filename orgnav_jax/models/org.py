@@ -1,7 +1,8 @@
 """Object relation graph encoders: the paper's ORG, the authors' released form, and D-SP.
 
 All map (app (B, C, d), box (B, C, 4) in [0, 1], conf (B, C), target (B, C)) to
-(B, C, 49), like encoders.BaselineEncoder. 1x1 convolutions are written as Dense.
+(B, C, 49), like encoders.BaselineEncoder (D-SP: to those maps and a vector). 1x1
+convolutions are written as Dense.
 
 ORGEncoder (paper, Sec. 3.2), per sample, X = [box, conf, target] (C, 6), F = app (C, d):
     Z    = ReLU(A X W)            A (C, C) learned adjacency, W (6, C): Z is (C, C)
@@ -15,9 +16,22 @@ ReleasedORGEncoder (authors' code, `models/graphmodel.py:74-85`): R1 = ReLU(X W1
 over what is now the category axis: R = MLP(R1^T) (C, C) (rows: W1's units j); F^ = R^T F
 pairs unit j with category row j of F; [F^, X] -> Dense 128 ReLU -> Dense 49.
 
-DSPEncoder (the paper's D-SP): a GCN over a FIXED prior graph from co-occurrence
-statistics of the training rooms (cooccurrence_adjacency):
-    H_0 = [F, X];  H_{l+1} = ReLU(A_hat H_l W_l);  maps = Dense_49(H_L).
+DSPEncoder (the paper's D-SP, issue 40): Yang et al.'s Scene Priors as SAVN's release
+builds them (`allenai/savn` models/gcn.py), with detections for word embeddings. The
+Baseline's path is kept unchanged (maps = Dense_49([F, X]) per category) and a graph
+branch over a FIXED prior graph A_hat (co-occurrence of the training rooms,
+cooccurrence_adjacency) adds a vector to the LSTM input:
+    H_0 = [F, X] (C, d + 6);  H_1 = ReLU(A_hat H_0 W_0);  H_2 = ReLU(A_hat H_1 W_1)
+    s = ReLU(A_hat H_2 W_2) (C, 1);  extra = Dense_out(s) (out = the LSTM width)
+The encoder returns (maps, extra); the trunk concatenates `extra` to its flattened
+input (models/trunk.py). Widths: W_0, W_1 square (d + 6 -> d + 6, the release's
+1024 -> 1024 on its 1024-wide nodes), W_2 to 1, no biases (as the release's W0-W2); the
+final map C -> LSTM width with a bias (the release's final_mapping 83 -> 512 = its
+hidden size).
+
+DSPReplaceEncoder (model "dsp_replace"; "dsp" before issue 40, config version <= 6): the
+GCN *replaces* the Baseline's maps (the target's own detection is averaged with its
+neighbours'): H_0 = [F, X];  H_{l+1} = ReLU(A_hat H_l W_l);  maps = Dense_49(H_L).
 """
 
 from __future__ import annotations
@@ -128,9 +142,10 @@ def as_static_matrix(a: np.ndarray) -> tuple[tuple[float, ...], ...]:
     return tuple(tuple(float(v) for v in row) for row in np.asarray(a))
 
 
-class DSPEncoder(nn.Module):
-    """D-SP: GCN layers H <- ReLU(A_hat H W) over the fixed prior graph `adjacency`
-    (C x C, hashable tuple of tuples) on nodes [F, X] (B, C, d + 6), then Dense 49."""
+class DSPReplaceEncoder(nn.Module):
+    """D-SP before issue 40 (model "dsp_replace"): GCN layers H <- ReLU(A_hat H W) over
+    the fixed prior graph `adjacency` (C x C, hashable tuple of tuples) on nodes [F, X]
+    (B, C, d + 6), then Dense 49: the graph's output replaces the detection maps."""
     adjacency: tuple[tuple[float, ...], ...]
     features: Sequence[int] = (64, 64)
     dtype: Any = None
@@ -148,7 +163,45 @@ class DSPEncoder(nn.Module):
         return nn.Dense(MAP_CELLS, name="to_map", dtype=self.dtype)(h)
 
 
-def dsp_from_scenes(scenes, dtype=None) -> DSPEncoder:
-    """A DSPEncoder whose prior graph comes from `scenes.present` (the training rooms)."""
+class DSPEncoder(nn.Module):
+    """The paper's D-SP (module docstring): the Baseline's maps (`to_map`, the Baseline's
+    parameter) and the graph branch's vector (B, out_features) -> (maps, extra). The
+    branch: three graph layers `graph_0..2` (no bias, ReLU after each, the last to one
+    value per node) over the fixed prior graph `adjacency`, then `graph_out` (C ->
+    out_features)."""
+    adjacency: tuple[tuple[float, ...], ...]
+    out_features: int = 128
+    dtype: Any = None
+
+    @property
+    def extra_features(self) -> int:
+        """Width of the vector the trunk concatenates to its flattened LSTM input."""
+        return self.out_features
+
+    @nn.compact
+    def __call__(self, app, box, conf, target, train: bool = False):
+        A = jnp.asarray(self.adjacency, jnp.float32)
+        C, dt = app.shape[-2], self.dtype
+        if A.shape != (C, C):
+            raise ValueError(f"D-SP adjacency is {A.shape}, inputs have {C} categories")
+        nodes = jnp.concatenate([app, location_features(box, conf, target)], axis=-1)
+        maps = nn.Dense(MAP_CELLS, name="to_map", dtype=dt)(nodes)     # the Baseline's
+        h, width = cast(nodes, dt), nodes.shape[-1]
+        for i, w in enumerate((width, width, 1)):          # ReLU(W(A_hat H)), as gcn.py
+            h = jnp.einsum("ij,bjk->bik", cast(A, dt), h)
+            h = nn.relu(nn.Dense(w, use_bias=False, name=f"graph_{i}", dtype=dt)(h))
+        extra = nn.Dense(self.out_features, name="graph_out", dtype=dt)(h[..., 0])
+        return maps, extra
+
+
+def dsp_from_scenes(scenes, out_features: int, dtype=None) -> DSPEncoder:
+    """The paper's D-SP (DSPEncoder) whose prior graph comes from `scenes.present` (the
+    training rooms); out_features: the graph vector's width (the LSTM width)."""
     return DSPEncoder(as_static_matrix(cooccurrence_adjacency(np.asarray(scenes.present))),
-                      dtype=dtype)
+                      out_features, dtype=dtype)
+
+
+def dsp_replace_from_scenes(scenes, dtype=None) -> DSPReplaceEncoder:
+    """The D-SP of config versions <= 6 (DSPReplaceEncoder), prior graph as dsp_from_scenes."""
+    return DSPReplaceEncoder(
+        as_static_matrix(cooccurrence_adjacency(np.asarray(scenes.present))), dtype=dtype)

@@ -3,7 +3,9 @@
 global map (B, 7, 7, G)  -> Dense(glob_channels) ReLU [dropout]
 previous action (B, 6)   -> Dense(action_embed) ReLU, tiled to 7x7
 category maps (B, C, 49) -> ReLU, 7x7xC
-concat -> Dense(fuse_channels) ReLU [dropout] -> flatten (B, 49*fuse) -> LSTM x layers
+concat -> Dense(fuse_channels) ReLU [dropout] -> flatten (B, 49*fuse)
+  [+ an encoder's extra vector (B, extra_features) concatenated: D-SP's graph branch]
+-> LSTM x layers
 -> actor Dense(6) logits; critic Dense(64) Dense(1) (linear: no ReLU between).
 (release `models/basemodel.py:66-95`; the previous action is the previous step's action
 probabilities, models/navmodel.py.) 1x1 convolutions are written as Dense over channels
@@ -103,12 +105,14 @@ class Trunk(nn.Module):
     lstm_layers: int = 2
     dtype: Any = None          # compute dtype below the heads (None: float32)
     form: str = "release"      # "release" | "pre_parity" (module docstring)
+    extra_features: int = 0    # width of a vector concatenated to the flattened LSTM
+                               # input (an encoder's second output; 0: none)
 
     def setup(self):
         self.global_1x1 = nn.Dense(self.glob_channels, dtype=self.dtype)
         self.action_dense = nn.Dense(self.action_embed, dtype=self.dtype)
         self.fuse_1x1 = nn.Dense(self.fuse_channels, dtype=self.dtype)
-        flat = FEATURE_GRID * FEATURE_GRID * self.fuse_channels
+        flat = FEATURE_GRID * FEATURE_GRID * self.fuse_channels + self.extra_features
         self.lstm = [LSTMGates(self.hidden, flat if i == 0 else self.hidden, self.dtype)
                      for i in range(self.lstm_layers)]
         self.actor = nn.Dense(NUM_ACTIONS)
@@ -124,9 +128,14 @@ class Trunk(nn.Module):
         """Channels of the dropout mask: both sites' (release) or the global map's."""
         return self.glob_channels + (self.fuse_channels if self.release else 0)
 
-    def embed(self, glob, cat_maps, prev_action, drop=None):
+    def embed(self, glob, cat_maps, prev_action, drop=None, extra=None):
         """(B, 7, 7, G), (B, C, 49), (B, 6), dropout mask (B, 7, 7, dropout_channels())
-        or None -> first-layer LSTM input gates (B, 4*hidden)."""
+        or None, extra (B, extra_features) or None (extra_features 0) -> first-layer LSTM
+        input gates (B, 4*hidden)."""
+        if (extra is None) != (self.extra_features == 0) or (
+                extra is not None and extra.shape[-1] != self.extra_features):
+            raise ValueError(f"trunk: extra_features {self.extra_features}, got an extra "
+                             f"input of shape {None if extra is None else extra.shape}")
         B = glob.shape[0]
         drop = None if drop is None else cast(drop, self.dtype)
         g = nn.relu(self.global_1x1(glob))
@@ -142,7 +151,10 @@ class Trunk(nn.Module):
         x = nn.relu(self.fuse_1x1(x))
         if drop is not None and self.release:
             x = x * drop[..., self.glob_channels:]
-        return self.lstm[0].project(x.reshape(B, -1))
+        x = x.reshape(B, -1)
+        if extra is not None:
+            x = jnp.concatenate([x, cast(extra, self.dtype)], axis=-1)
+        return self.lstm[0].project(x)
 
     def recur(self, gates, carry):
         """First-layer input gates (B, 4*hidden), carry -> (logits (B, 6), value (B,),

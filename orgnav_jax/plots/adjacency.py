@@ -159,11 +159,11 @@ def run_adjacency(run_dir: str | Path, best: bool = True) -> tuple[np.ndarray, s
     """-> (A, model name) of a run: the learned A of 'org', the prior graph of 'dsp'."""
     from orgnav_jax.training.config import load_config
     cfg = load_config(run_dir)
-    if cfg.model == "dsp":
+    if cfg.model in ("dsp", "dsp_replace"):
         from orgnav_jax.models.org import cooccurrence_adjacency
         from orgnav_jax.training.runs import scenes_for
         present = np.asarray(scenes_for(cfg).split_view("train").present)
-        return cooccurrence_adjacency(present), "dsp"
+        return cooccurrence_adjacency(present), cfg.model
     if cfg.model != "org":
         raise ValueError(f"run {run_dir} trains model {cfg.model!r}, which has no adjacency "
                          "matrix (only 'org' learns one; 'dsp' uses a fixed prior)")

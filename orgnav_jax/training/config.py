@@ -31,6 +31,10 @@ V5_DEFAULTS = {"savn": False, "savn_steps": 6, "savn_inner_lr": 1e-4,
 # Fields a version-6 (or older) config lacks: those runs were trained with the networks
 # before parity with the release (issue 39): they keep them, and evaluate as trained.
 V6_DEFAULTS = {"net": "pre_parity", "prev_action": "onehot"}
+# Values whose meaning changed with config version 7 (issue 40), old -> the value that
+# means it now, for the configs of version 6 and older: "dsp" was the D-SP whose graph
+# replaces the detection maps (models/org.py), now "dsp_replace".
+V6_VALUES = {"model": {"dsp": "dsp_replace"}}
 
 # String modes are Literal types; their values (typing.get_args) are what validate
 # accepts, and every dispatch on them is a dict that raises on other values
@@ -62,7 +66,7 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     scenes_dir: str | None = None     # or a saved / imported SceneSet directory
     scene_seed: int = 0
     # model
-    model: str = "baseline"           # baseline | we | org | org_released | dsp
+    model: str = "baseline"           # baseline | we | org | org_released | dsp | dsp_replace
     glob_channels: int = 16
     action_embed: int = 10
     fuse_channels: int = 16
@@ -259,7 +263,7 @@ def load_config(run_dir: str | Path) -> TrainConfig:
                         3: {**V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS},
                         4: {**V5_DEFAULTS, **V6_DEFAULTS}, 5: {**V5_DEFAULTS, **V6_DEFAULTS},
                         6: V6_DEFAULTS},
-                       OLD_RENAMES)
+                       OLD_RENAMES, {v: V6_VALUES for v in (2, 3, 4, 5, 6)})
 
 
 def add_config_arguments(ap: argparse.ArgumentParser) -> None:

@@ -49,10 +49,12 @@ STAGES = {"nav": "training", "tpn": "TPN (stage 2)"}   # the kinds of run, in wo
 
 def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int, ...],
                 upgrades: dict[int, dict] | None = None,
-                renames: dict[int, dict[str, str]] | None = None):
+                renames: dict[int, dict[str, str]] | None = None,
+                values: dict[int, dict[str, dict]] | None = None):
     """config.json of a run directory -> cls(**fields).validate(), after checking that it
     is JSON, of this `stage`, of one of `versions` (upgrades[v]: the values of fields a
-    version-v config lacks; renames[v]: old field name -> new) with known field names,
+    version-v config lacks; renames[v]: old field name -> new; values[v][field]: old
+    value -> the value that means it now) with known field names,
     every field's type and range checked (cls.validate: check_types, check_ranges);
     one-line errors naming the file and the field."""
     path = Path(run_dir) / CONFIG_FILE
@@ -76,6 +78,9 @@ def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int
                          f"versions {list(versions)}")
     renamed = (renames or {}).get(version, {})
     doc = {renamed.get(k, k): v for k, v in doc.items()}
+    for field, meaning in (values or {}).get(version, {}).items():
+        if field in doc and isinstance(doc[field], str) and doc[field] in meaning:
+            doc[field] = meaning[doc[field]]
     doc = {**(upgrades or {}).get(version, {}), **doc}
     bad = sorted(set(doc) - {f.name for f in dataclasses.fields(cls)})
     if bad:
