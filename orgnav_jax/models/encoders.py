@@ -32,9 +32,27 @@ class BaselineEncoder(nn.Module):
         return nn.Dense(MAP_CELLS, name="to_map", dtype=self.dtype)(x)
 
 
+class WordVectorEncoder(nn.Module):
+    """WE / SAVN's target input, SAVN's layout (allenai/savn models/basemodel.py:21-26,
+    60-61): no detections; the target's word vector (a row of `table`, 300-d GloVe or
+    the stand-in: models/word_vectors.py) -> Dense(64) -> ReLU, the same 64 values tiled
+    over the 7x7 map -> (B, 64, 49), which the trunk stacks as 64 channels beside the
+    global map's and the action's (64 + 64 + 10 at the release's widths)."""
+    table: Any                # models.word_vectors.WordTable (C, D)
+    channels: int = 64
+    dtype: Any = None
+
+    @nn.compact
+    def __call__(self, app, box, conf, target, train: bool = False):
+        vec = target @ jnp.asarray(self.table.array())           # (B, D): the target's row
+        e = nn.relu(nn.Dense(self.channels, name="embed_glove", dtype=self.dtype)(vec))
+        return jnp.broadcast_to(e[..., None], e.shape + (MAP_CELLS,))
+
+
 class WordEmbeddingEncoder(nn.Module):
-    """The WE comparison: no detections at all; a learned embedding of the target category
-    fills the C maps."""
+    """The WE comparison before issue 41 (target_input "onehot_maps"; runs saved before it
+    keep it): no detections at all; a learned embedding of the one-hot target fills the
+    C maps (22 different maps, no ReLU; not a word embedding)."""
     dtype: Any = None
 
     @nn.compact

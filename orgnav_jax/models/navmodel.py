@@ -25,7 +25,8 @@ from flax import struct
 
 from orgnav_jax.constants import FEATURE_GRID, IMAGE_SIZE, NUM_ACTIONS
 from orgnav_jax.errors import choose
-from orgnav_jax.models.encoders import BaselineEncoder, WordEmbeddingEncoder
+from orgnav_jax.models.encoders import (
+    BaselineEncoder, WordEmbeddingEncoder, WordVectorEncoder)
 from orgnav_jax.models.init import release_init
 from orgnav_jax.models.org import (
     ORGEncoder, ReleasedORGEncoder, dsp_from_scenes, dsp_replace_from_scenes)
@@ -106,10 +107,21 @@ def compute_dtype(cfg):
     return {"float32": None, "bfloat16": jnp.bfloat16}[getattr(cfg, "dtype", "float32")]
 
 
+def we_encoder(cfg):
+    """WE / SAVN's target input (cfg.target_input): SAVN's word-vector layout, or the
+    one-hot maps of runs saved before issue 41 (docs/savn.md)."""
+    from orgnav_jax.models.word_vectors import category_table
+    return choose({
+        "word_vector": lambda: WordVectorEncoder(
+            category_table(getattr(cfg, "word_vectors", None)), dtype=compute_dtype(cfg)),
+        "onehot_maps": lambda: WordEmbeddingEncoder(dtype=compute_dtype(cfg))},
+        getattr(cfg, "target_input", "word_vector"), "WE target input (target_input)")()
+
+
 # name -> factory(model config, training SceneSet) -> encoder module
 ENCODERS: dict[str, Callable] = {
     "baseline": lambda cfg, scenes: BaselineEncoder(dtype=compute_dtype(cfg)),
-    "we": lambda cfg, scenes: WordEmbeddingEncoder(dtype=compute_dtype(cfg)),
+    "we": lambda cfg, scenes: we_encoder(cfg),
     "org": lambda cfg, scenes: ORGEncoder(dtype=compute_dtype(cfg)),
     "org_released": lambda cfg, scenes: ReleasedORGEncoder(
         wiring="release" if cfg.net == "release" else "alternate", dtype=compute_dtype(cfg)),

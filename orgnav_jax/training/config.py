@@ -31,6 +31,13 @@ V5_DEFAULTS = {"savn": False, "savn_steps": 6, "savn_inner_lr": 1e-4,
 # Fields a version-6 (or older) config lacks: those runs were trained with the networks
 # before parity with the release (issue 39): they keep them, and evaluate as trained.
 V6_DEFAULTS = {"net": "pre_parity", "prev_action": "onehot"}
+# Fields a version-6 (or older) config lacks, added with config version 7 (issues 40 and
+# 41), with the values those runs were trained with: WE's one-hot target maps, this
+# project's optimiser, greedy SAVN evaluation. (The brief of issues 40/41 called this dict
+# V7_DEFAULTS, counting issue 39 as version 7; issue 39 kept version 6, so the runs these
+# values describe are version 6 and older.)
+V7_DEFAULTS = {"target_input": "onehot_maps", "word_vectors": None, "optim": "ours",
+               "savn_act": "greedy"}
 # Values whose meaning changed with config version 7 (issue 40), old -> the value that
 # means it now, for the configs of version 6 and older: "dsp" was the D-SP whose graph
 # replaces the detection maps (models/org.py), now "dsp_replace".
@@ -48,10 +55,16 @@ Net = Literal["release", "pre_parity"]   # the networks as the release computes 
                                          # this project did before issue 39 (docs/training.md)
 PrevAction = Literal["probs", "onehot"]  # previous step's action probabilities (release), or
                                          # a one-hot of the action taken
+TargetInput = Literal["word_vector", "onehot_maps"]   # WE / SAVN's target: SAVN's word
+                                         # vector -> 64 tiled channels, or (before issue
+                                         # 41) a one-hot -> 22 learned 7x7 maps
+Optim = Literal["ours", "release"]       # the optimiser and advantage settings (OPTIM)
+SavnAct = Literal["greedy", "sample"]    # SAVN's test-time actions (the release samples)
 DType = Literal["float32", "bfloat16"]   # the compute dtype of matmuls and activations
                                        # (parameters and optimizer state stay float32)
 IL_MODES, IL_STEPS, IL_NORMS = get_args(ILMode), get_args(ILStep), get_args(ILNorm)
 NETS, PREV_ACTIONS = get_args(Net), get_args(PrevAction)
+TARGET_INPUTS, OPTIMS, SAVN_ACTS = get_args(TargetInput), get_args(Optim), get_args(SavnAct)
 DTYPES = get_args(DType)
 
 
@@ -76,6 +89,10 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
                                       # the fusion 1x1 layer (release: 0.25 at both)
     net: Net = "release"              # trunk, released ORG wiring and init (docs/training.md)
     prev_action: PrevAction = "probs"
+    # WE / SAVN's target input (model "we"; models/encoders.py, docs/savn.md)
+    target_input: TargetInput = "word_vector"
+    word_vectors: str | None = None   # a GloVe text file; None: the stand-in (seeded
+                                      # random unit vectors, models/word_vectors.py)
     # imitation (trial-driven IL): none | deadlock | all | failed (see IL_MODES, IL_STEPS)
     il: ILMode = "none"
     il_weight: float = 1.0
@@ -85,7 +102,10 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     success_reward: float = 5.0
     step_penalty: float = -0.01
     episode_cap: int = 30             # training episodes end after this many steps
-    # optimisation (synchronous A2C over num_envs environments)
+    # optimisation (synchronous A2C over num_envs environments). optim "release":
+    # AMSGrad and the loss summed over the rollout's steps (an episode's sum, as the
+    # release); get_config then also sets OPTIM["release"]'s fields (docs/training.md)
+    optim: Optim = "ours"
     num_envs: int = 64
     rollout_len: int = 16
     lr: float = 7e-4
@@ -109,12 +129,13 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     savn_inner_lr: float = 1e-4       # the release's inner_lr
     savn_inner_steps: int = 4         # inner steps per episode (the release's gradient_limit)
     savn_first_order: bool = False
+    savn_act: SavnAct = "greedy"      # test-time actions: greedy, or sampled (the release)
 
     @property
     def steps_per_update(self) -> int:
-        """Env steps an update counts for the budget. SAVN: num_envs whole episodes,
-        counted at their cap (episode_cap steps each; the real steps are fewer, logged as
-        env_steps_real)."""
+        """Env steps an update counts for the budget. SAVN: the most an update can take
+        (num_envs episodes at their cap); its budget counts the steps the episodes really
+        took (training/loop.py: savn_stage, issue 40)."""
         if self.savn:
             return self.num_envs * self.episode_cap
         return self.num_envs * self.rollout_len
@@ -124,7 +145,10 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
         return max(1, self.total_env_steps // self.steps_per_update)
 
     def budget_notice(self) -> str | None:
-        """A one-line note when the env steps run differ from total_env_steps, else None."""
+        """A one-line note when the env steps run differ from total_env_steps, else None
+        (SAVN: None; it runs to the first chunk whose real env steps reach the budget)."""
+        if self.savn:
+            return None
         return budget_notice("total_env_steps", self.total_env_steps, self.steps_per_update,
                              self.updates_per_chunk, f"{self.num_envs} envs x "
                                                      f"{self.rollout_len} steps")
@@ -139,7 +163,9 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
                              f"one of {sorted(ENCODERS)}")
         for name, allowed in (("il", IL_MODES), ("il_step", IL_STEPS),
                               ("il_norm", IL_NORMS), ("dtype", DTYPES), ("net", NETS),
-                              ("prev_action", PREV_ACTIONS)):
+                              ("prev_action", PREV_ACTIONS),
+                              ("target_input", TARGET_INPUTS), ("optim", OPTIMS),
+                              ("savn_act", SAVN_ACTS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"config field {name!r}: {getattr(self, name)!r}, expected "
                                  f"one of {list(allowed)}")
@@ -209,6 +235,19 @@ TRAIN_PRESETS.update({name: dict(row, dropout=TABLE_DROPOUT, run_dir=f"runs/{nam
                 for name, row in TABLE_ROWS.items()})
 
 
+# The optimiser and advantage settings (`--optim`, docs/training.md). "release": the ECCV
+# release's (utils/command_parser.py, main.py, optimizers/shared_adam.py,
+# runners/a3c_train.py): lr 1e-4, Adam eps 1e-3 with AMSGrad, gradient-norm clip 100 on
+# the loss summed over steps, GAE tau 1 (Monte-Carlo value targets), rollouts of a whole
+# capped episode's length (30 steps); SAVN rows: no clipping (allenai/savn). get_config
+# fills these fields for optim "release" unless they are given.
+OPTIM: dict[str, dict] = {
+    "ours": {},
+    "release": dict(lr=1e-4, adam_eps=1e-3, max_grad_norm=100.0, gae_lambda=1.0,
+                    rollout_len=30),
+}
+
+
 @dataclasses.dataclass(frozen=True)
 class Budget:
     """A named training budget (--budget): stage-1 env steps and stage-2 episodes.
@@ -252,17 +291,21 @@ def get_config(preset: str = "small", **overrides) -> TrainConfig:
     bad = sorted(set(overrides) - fields)
     if bad:
         raise ValueError(f"unknown config field(s) {bad}; fields are {sorted(fields)}")
-    return TrainConfig(**{**TRAIN_PRESETS[preset], **overrides}).validate()
+    fields = {**TRAIN_PRESETS[preset], **overrides}
+    return TrainConfig(**{**TRAIN_PRESETS[preset], **OPTIM.get(fields.get("optim"), {}),
+                          **overrides}).validate()
 
 
 def load_config(run_dir: str | Path) -> TrainConfig:
     """The TrainConfig saved in a training run directory (run_dir.read_config)."""
     from orgnav_jax.training.run_dir import read_config
     return read_config(run_dir, TrainConfig, "nav", READABLE_VERSIONS,
-                       {2: {**V2_DEFAULTS, **V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS},
-                        3: {**V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS},
-                        4: {**V5_DEFAULTS, **V6_DEFAULTS}, 5: {**V5_DEFAULTS, **V6_DEFAULTS},
-                        6: V6_DEFAULTS},
+                       {2: {**V2_DEFAULTS, **V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS,
+                            **V7_DEFAULTS},
+                        3: {**V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS, **V7_DEFAULTS},
+                        4: {**V5_DEFAULTS, **V6_DEFAULTS, **V7_DEFAULTS},
+                        5: {**V5_DEFAULTS, **V6_DEFAULTS, **V7_DEFAULTS},
+                        6: {**V6_DEFAULTS, **V7_DEFAULTS}},
                        OLD_RENAMES, {v: V6_VALUES for v in (2, 3, 4, 5, 6)})
 
 

@@ -107,6 +107,8 @@ def a2c_loss(params, model, scenes, traj, carry0, advantages, returns, cfg,
                                   il_mask(cfg.il, cfg.il_step, traj), cfg.il_norm)
     loss = (policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
             + cfg.il_weight * il)
+    if cfg.optim == "release":     # the release sums its losses over the steps of an
+        loss = loss * traj.fresh.shape[0]   # episode: sum over time, mean over envs
     aux = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
            "il_loss": il, "il_steps": il_steps}
     return loss, aux

@@ -39,6 +39,7 @@ from flax import struct, traverse_util
 
 from orgnav_jax import env
 from orgnav_jax.compile_cache import compiled_once
+from orgnav_jax.errors import choose
 from orgnav_jax.evaluation import Policy
 from orgnav_jax.models import init_params, model_inputs, previous_action, reset_carry
 from orgnav_jax.training.losses import gae
@@ -313,6 +314,8 @@ def savn_loss(meta, model, learned, cfg, scenes, key):
     value_loss = 0.5 * (((ret - values) ** 2) * mask).sum() / steps
     entropy = (-(jnp.exp(logp_all) * logp_all).sum(-1) * mask).sum() / steps
     loss = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
+    if cfg.optim == "release":     # the release sums over an episode's steps (per episode)
+        loss = loss * sg(steps) / N
     aux = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
            "learned_loss": (jnp.mean(jnp.stack(learned_losses)) if learned_losses
                             else jnp.float32(0)),
@@ -368,8 +371,10 @@ class SavnCarry:
 
 @compiled_once
 def savn_policy(model, learned: LearnedLoss, k: int, inner_steps: int, inner_lr: float,
-                widths: tuple[int, int, int], name: str = "SAVN") -> Policy:
-    """Greedy actions with SAVN's test-time inner steps: after each of the first
+                widths: tuple[int, int, int], name: str = "SAVN",
+                act_rule: str = "greedy") -> Policy:
+    """Greedy (or, act_rule "sample", sampled: the release's agents/agent.py:120)
+    actions with SAVN's test-time inner steps: after each of the first
     `inner_steps` segments of k steps of an episode, one SGD step (inner_lr) of the
     learned loss on that episode's fast weights (reset at each episode start).
     policy_params = {"nav", "ll"}; widths = scene_widths(scenes) (the segment buffer)."""
@@ -399,7 +404,9 @@ def savn_policy(model, learned: LearnedLoss, k: int, inner_steps: int, inner_lr:
         logits, _, _, lstm, _, _ = v_segment(shared, fast.dense, fast.ux, fast.uh, fast.v,
                                              lstm, one_step,
                                              jnp.zeros((fresh.shape[0], 1, fast.v.shape[-1])))
-        action = jnp.argmax(logits[:, 0], -1).astype(jnp.int32)
+        action = choose({"greedy": lambda: jnp.argmax(logits[:, 0], -1),
+                         "sample": lambda: jax.random.categorical(key, logits[:, 0])},
+                        act_rule, "SAVN test-time actions (savn_act)")().astype(jnp.int32)
         on = (pos == k - 1) & (updates < inner_steps)
 
         def inner(fast):
@@ -420,7 +427,9 @@ def run_policy(cfg, model, scenes) -> Policy:
     """The test-time SAVN policy of a SAVN run's config (the learned loss only, no
     reward); `scenes`: any split of the run's scene set (for its feature widths)."""
     return savn_policy(model, build_learned_loss(), cfg.savn_steps, cfg.savn_inner_steps,
-                       cfg.savn_inner_lr, scene_widths(scenes), f"{cfg.model}+SAVN")
+                       cfg.savn_inner_lr, scene_widths(scenes),
+                       f"{cfg.model}+SAVN" + ("-sampled" if cfg.savn_act == "sample" else ""),
+                       cfg.savn_act)
 
 
 def scene_widths(scenes) -> tuple[int, int, int]:

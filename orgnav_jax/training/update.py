@@ -32,6 +32,13 @@ def env_params(cfg: TrainConfig) -> env.EnvParams:
 
 
 def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
+    """Adam with global-norm clipping (optim "ours"); optim "release": AMSGrad (the
+    release's SharedAdam), and for SAVN rows no clipping (SAVN's release clips nothing;
+    max_grad_norm is then unused). docs/training.md."""
+    if cfg.optim == "release":
+        adam = optax.amsgrad(cfg.lr, eps=cfg.adam_eps)
+        return adam if cfg.savn else optax.chain(
+            optax.clip_by_global_norm(cfg.max_grad_norm), adam)
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
                        optax.adam(cfg.lr, eps=cfg.adam_eps))
 
