@@ -312,3 +312,27 @@ def test_tpn_attention_is_a_top_k_read_of_earlier_steps_and_is_drawn(base_run, t
     assert "step 2 reads most from steps" in capsys.readouterr().out
     assert "only for a TPN" in cli_error(plots.main, ["tpn-attention", base_run])
     assert "--step 100000" in cli_error(plots.main, ["tpn-attention", tpn_run, "--step", "100000"])
+
+
+def test_stage2_release_placement_labels_the_step_into_the_deadlock(loaded, base_run,
+                                                                    tmp_path):
+    """placement "release" (issue 41): the same episodes (same key, frozen base) as the
+    state placement; step t is supervised when s_{t+1} is a deadlock, with the expert
+    action at s_{t+1}: the state placement's flag and label of step t + 1."""
+    model, params, nav_cfg, test = loaded
+    batches = {p: collect(model, params, tpn_cfg(base_run, tmp_path / p, episode_cap=20,
+                                                 placement=p),
+                          test, jax.random.PRNGKey(3), 12) for p in ("state", "release")}
+    s, r = ({k: np.asarray(getattr(b, k)) for k in ("valid", "deadlock", "expert", "probs")}
+            for b in (batches["state"], batches["release"]))
+    np.testing.assert_array_equal(s["valid"], r["valid"])
+    np.testing.assert_array_equal(s["probs"], r["probs"])          # the same episodes
+    both = s["valid"][:, :-1] & s["valid"][:, 1:]                  # t and t + 1 run
+    np.testing.assert_array_equal(r["deadlock"][:, :-1][both], s["deadlock"][:, 1:][both])
+    np.testing.assert_array_equal(r["expert"][:, :-1][both], s["expert"][:, 1:][both])
+    assert r["deadlock"][:, :-1][both].any() and not r["deadlock"][:, :-1][both].all()
+    with pytest.raises(ValueError, match="'release' goes with deadlock 'visited'"):
+        get_tpn_config(placement="release", deadlock="cosine")
+    cfg = get_tpn_config(optim="release")         # the release's stage-2 optimiser, cap 30
+    assert (cfg.lr, cfg.max_grad_norm, cfg.episode_cap) == (1e-4, 100.0, 30)
+    assert get_tpn_config(optim="release", episode_cap=50).episode_cap == 50

@@ -227,3 +227,62 @@ def test_cli_options_and_batch_size(setup):
     assert dense + slots < sum(int(v.size) for v in jax.tree_util.tree_leaves(params))
     assert default_batch_size(params, get_tpn_config(scope="all")) > default_batch_size(
         params, "all", impl="dense")
+
+
+def test_release_placement_corrects_step_t_and_acts_from_step_t_plus_1(setup, test_split):
+    """placement "release" (issue 41): step 0's logits are the trained model's and are not
+    re-run; at step 1, the rows whose state is flagged (envs 0 and 2) act with the weights
+    after one SGD step of CE(step 0's logits, step 0's target), computed by hand here; env 1
+    acts with the trained weights; at step 2 (no flag) step 1's pending update is dropped.
+    The low-rank weights equal the dense reference's."""
+    model, params, tpn, tpn_params = setup("baseline")
+    lr = 0.5
+    cfg = get_tpn_config(scope="all", when="deadlock", target="random", tpn_lr=lr,
+                         placement="release").test_time()
+    pparams = {"base": params, "tpn": tpn_params}
+    flags = [[False] * B, [True, False, True], [False] * B]
+    obs = [o.replace(deadlock=jnp.asarray(f))
+           for o, f in zip(observations(test_split, 3), flags)]
+    fresh = [[True] * B, [False] * B, [False] * B]
+    runs = {impl: drive(tpn_policy(model, tpn, cfg, "x", 0.0, impl), pparams, test_split,
+                        obs, fresh) for impl in ("dense", "lowrank")}
+    # by hand: the trained model's step 0, its target (the policy's random target of step
+    # 0, drawn from the key drive gives it), one SGD step per row, then step 1
+    inputs = [model_inputs(test_split, o) for o in obs]
+    carry0 = model.initial_carry(B)
+    logits0, _, carry1, _ = model.apply(params, inputs[0], carry0)
+    target0 = jax.random.randint(jax.random.PRNGKey(0), (B,), 0, 6)
+    row = lambda tree, i: jax.tree_util.tree_map(lambda x: x[i:i + 1], tree)
+
+    def ce(p, i):
+        logits = model.apply(p, row(inputs[0], i), row(carry0, i))[0]
+        return -jax.nn.log_softmax(logits)[0, target0[i]]
+
+    probs1 = []
+    for i in range(B):
+        p = params
+        if flags[1][i]:
+            g = jax.jit(jax.grad(ce), static_argnums=1)(params, i)
+            p = jax.tree_util.tree_map(lambda w, d: w - lr * d, params, g)
+        probs1.append(jax.nn.softmax(model.apply(p, row(inputs[1], i), row(carry1, i))[0])[0])
+    for impl, carries in runs.items():
+        np.testing.assert_allclose(np.asarray(carries[0].memory.prev_probs),
+                                   np.asarray(jax.nn.softmax(logits0)), rtol=1e-5, atol=1e-6,
+                                   err_msg=impl)           # step 0: not re-run, not updated
+        np.testing.assert_allclose(np.asarray(carries[1].memory.prev_probs),
+                                   np.stack(probs1), rtol=1e-4, atol=1e-5, err_msg=impl)
+        assert [int(u) for u in carries[1].updates] == [1, 0, 1], impl
+        assert [int(u) for u in carries[2].updates] == [1, 0, 1], impl
+        w1, w2 = (weights(model, cfg, params, impl, c) for c in carries[1:])
+        for k in w1:                    # step 1's update is pending, never applied at step 2
+            np.testing.assert_array_equal(w2[k], w1[k], err_msg=str(k))
+    dense, low = (weights(model, cfg, params, impl, runs[impl][1]) for impl in runs)
+    for k in dense:
+        np.testing.assert_allclose(low[k], dense[k], rtol=1e-4, atol=2e-6, err_msg=str(k))
+    # the state placement at step 1 differs (it updates on step 1's own logits and re-runs;
+    # test_reset_every's program, so no new compile)
+    state = drive(tpn_policy(model, tpn, get_tpn_config(scope="all", tpn_lr=0.5,
+                                                        reset_every=0).test_time()),
+                  pparams, test_split, obs, fresh)
+    assert not np.allclose(np.asarray(state[1].memory.prev_probs)[0], np.asarray(probs1[0]),
+                           atol=1e-5)

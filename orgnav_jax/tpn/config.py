@@ -25,8 +25,17 @@ Detector = Literal["visited", "cosine"]      # external memory: visited set or f
 When = Literal["deadlock", "all"]            # which steps update (Table 2: "all")
 Target = Literal["tpn", "random"]            # update target (Table 2: "random")
 Act = Literal["sample", "greedy"]            # the frozen base's actions in stage 2
-SCOPES, DETECTORS, WHEN, TARGETS, ACTS = (get_args(t) for t in (Scope, Detector, When,
-                                                                 Target, Act))
+# Where the TPN acts (docs/tpn_stage2.md): "state", ours: at a deadlock state, the
+# policy's output there is corrected (CE with the TPN's prediction there) and the step is
+# re-run with the new weights; stage 2 labels the deadlock state with its expert action.
+# "release", the ECCV release's (agents/agent.py:149-205, runners/train_util.py:9-37):
+# after step t, if s_{t+1} is a deadlock, CE(policy logits of step t, the TPN's prediction
+# of step t), and the new weights act from step t+1 (step t is not re-run); stage 2
+# labels the step that led into the deadlock with the expert action at s_{t+1}.
+Placement = Literal["state", "release"]
+StageOptim = Literal["ours", "release"]      # stage 2's optimiser (STAGE2_OPTIM)
+SCOPES, DETECTORS, WHEN, TARGETS, ACTS, PLACEMENTS, STAGE_OPTIMS = (
+    get_args(t) for t in (Scope, Detector, When, Target, Act, Placement, StageOptim))
 
 
 # The test-time learning rate val chose for both bases (Baseline and ORG + IL; the
@@ -63,6 +72,7 @@ class TestTime:
     target: Target = "tpn"
     reset_every: int = 50
     tpn_train_mode: bool = False
+    placement: Placement = "state"
     deadlock: Detector = "visited"
     cosine_threshold: float = 0.99
     signature_dim: int = 64
@@ -86,6 +96,7 @@ class TPNConfig(run_fields(updates_per_chunk=10, eval_every_chunks=5,
     act: Act = "sample"               # sample | greedy (the base's actions in stage 2)
     episode_cap: int = 100            # stage-2 episode cap (test time: the eval caps)
     num_envs: int = 64
+    optim: StageOptim = "ours"        # Adam (ours) | the release's (STAGE2_OPTIM)
     lr: float = 3e-4
     max_grad_norm: float = 10.0
     total_episodes: int = 40_000
@@ -97,6 +108,7 @@ class TPNConfig(run_fields(updates_per_chunk=10, eval_every_chunks=5,
     reset_every: int = 50             # fast weights back to the trained ones every N steps
                                       # of an episode (the release's 50); 0: at its start only
     tpn_train_mode: bool = False      # the release's confound: dropout active with TPN
+    placement: Placement = "state"    # where the TPN acts, both stages (Placement above)
 
     @property
     def num_updates(self) -> int:
@@ -112,11 +124,16 @@ class TPNConfig(run_fields(updates_per_chunk=10, eval_every_chunks=5,
         the expected range (FIELD_RANGES)."""
         check_types(self, "TPN config field")
         for name, allowed in (("scope", SCOPES), ("deadlock", DETECTORS), ("when", WHEN),
-                              ("target", TARGETS), ("act", ACTS)):
+                              ("target", TARGETS), ("act", ACTS),
+                              ("placement", PLACEMENTS), ("optim", STAGE_OPTIMS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"TPN config field {name!r}: {getattr(self, name)!r}, "
                                  f"expected one of {list(allowed)}")
         check_ranges(self, FIELD_RANGES, "TPN config field")
+        if self.placement == "release" and self.deadlock != "visited":
+            raise ValueError("TPN config field 'placement': 'release' goes with deadlock "
+                             "'visited' (the release's revisit check after the move), got "
+                             f"deadlock {self.deadlock!r}")
         return self
 
     @property
@@ -157,12 +174,26 @@ FIELD_RANGES: dict[str, Range] = {
 }
 
 
+# Stage 2's optimiser (`--optim`, TPNConfig.optim). "release": the release trains stage 2
+# with its A3C optimiser (AMSGrad, eps 1e-3, lr 1e-4, gradient-norm clip 100 on the loss
+# summed over an episode's steps) on training episodes capped at 30 steps; get_tpn_config
+# fills these fields for it unless they are given.
+STAGE2_OPTIM: dict[str, dict] = {
+    "ours": {},
+    "release": dict(lr=1e-4, max_grad_norm=100.0, episode_cap=30),
+}
+# Fields a version-6 (or older) TPN config lacks (config version 7, issue 41), with the
+# values those runs used.
+V7_DEFAULTS = {"placement": "state", "optim": "ours"}
+
+
 def get_tpn_config(**fields) -> TPNConfig:
-    """Defaults with fields replaced; run_dir defaults to <base_dir>/tpn."""
+    """Defaults with fields replaced; run_dir defaults to <base_dir>/tpn; optim "release"
+    fills STAGE2_OPTIM["release"]'s fields that are not given."""
     bad = sorted(set(fields) - FIELDS)
     if bad:
         raise ValueError(f"unknown TPN config field(s) {bad}; fields are {sorted(FIELDS)}")
-    cfg = TPNConfig(**fields)
+    cfg = TPNConfig(**{**STAGE2_OPTIM.get(fields.get("optim"), {}), **fields})
     if not cfg.run_dir and cfg.base_dir:
         cfg = dataclasses.replace(cfg, run_dir=str(Path(cfg.base_dir) / "tpn"))
     return cfg.validate()
@@ -186,11 +217,12 @@ def load_tpn_config(run_dir: str | Path) -> TPNConfig:
         raise ValueError(f"{path}: a stage-2 run of the TPN head before the release's "
                          "(issue 39; it has the field 'mlp'): its parameters do not fit "
                          "this TPN network; train stage 2 again (docs/tpn.md)")
-    return read_config(run_dir, TPNConfig, "tpn", READABLE_VERSIONS, renames=OLD_RENAMES)
+    return read_config(run_dir, TPNConfig, "tpn", READABLE_VERSIONS,
+                       {v: V7_DEFAULTS for v in READABLE_VERSIONS if v < 7}, OLD_RENAMES)
 
 
 TEST_TIME_FIELDS = ("tpn_lr", "scope", "when", "target", "deadlock", "cosine_threshold",
-                    "reset_every", "tpn_train_mode")
+                    "reset_every", "tpn_train_mode", "placement")
 
 
 def add_tpn_arguments(ap: argparse.ArgumentParser, fields=None) -> None:

@@ -118,35 +118,57 @@ def scope_size(variables, scope: str) -> int:
     return sum(int(v.size) for v in split_scope(variables, scope)[0].values())
 
 
+PLACEMENTS = ("state", "release")
+
+
 class DenseFastWeights:
     """Full per-episode copies of a scope's parameters (see module docstring), with the
-    step interface of lowrank.LowRankFastWeights."""
+    step interface of lowrank.LowRankFastWeights.
 
-    def __init__(self, model, scope: str):
-        self.model, self.scope = model, scope
+    placement "state" (ours): a step's update is taken on that step's logits, which are
+    re-run with the new weights. "release" (the ECCV release's): a step's update is
+    computed on its logits but kept pending, and the next step applies it first when its
+    `commit` says so (s_{t+1} is a deadlock); the step is not re-run. The fast weights
+    are then (weights, weights after the pending update, pending (B,) bool)."""
+
+    def __init__(self, model, scope: str, placement: str = "state"):
+        if placement not in PLACEMENTS:
+            raise ValueError(f"TPN placement {placement!r}: expected one of {PLACEMENTS}")
+        self.model, self.scope, self.placement = model, scope, placement
         self.shared, per_env = split_step(model, scope)
         self.per_env = per_env
         self.v_per_env = jax.vmap(per_env, in_axes=(0, None, 0))
         self.v_sgd = jax.vmap(sgd_step, in_axes=(None, 0, None, 0, 0, None))
 
     def __hash__(self):
-        return hash((self.model, self.scope))
+        return hash((self.model, self.scope, self.placement))
 
     def __eq__(self, other):
-        return isinstance(other, DenseFastWeights) and (self.model, self.scope) == (
-            other.model, other.scope)
+        return isinstance(other, DenseFastWeights) and (
+            self.model, self.scope, self.placement) == (other.model, other.scope,
+                                                        other.placement)
 
     def init(self, batch: int, base):
-        return tile(split_scope(base, self.scope)[0], batch)
+        w = tile(split_scope(base, self.scope)[0], batch)
+        if self.placement == "release":
+            return w, w, jax.numpy.zeros(batch, bool)
+        return w
 
     def reset(self, base, fast, mask):
         """mask (B,) bool: those rows go back to the trained weights."""
         return where_rows(mask, self.init(mask.shape[0], base), fast)
 
-    def step(self, base, fast, inputs, carry, decide, lr):
+    def step(self, base, fast, inputs, carry, decide, lr, commit=None):
         """As LowRankFastWeights.step: -> (logits (B, 6), carry, fast, aux)."""
         _, rest = split_scope(base, self.scope)
         features = self.shared(base, inputs, carry)
+        if self.placement == "release":
+            w, after, pending = fast
+            w = where_rows(pending & commit, after, w)       # the previous step's update
+            logits, lstm, h = self.v_per_env(w, rest, features)
+            target, update, aux = decide(logits, h)
+            after = self.v_sgd(self.per_env, w, rest, features, target, lr)
+            return logits, lstm, (w, after, update), aux
         logits, lstm, h = self.v_per_env(fast, rest, features)
         target, update, aux = decide(logits, h)
         fast = where_rows(update, self.v_sgd(self.per_env, fast, rest, features, target, lr),
@@ -156,5 +178,6 @@ class DenseFastWeights:
         return logits, lstm, fast, aux
 
     def materialize(self, base, fast):
-        """-> {path: (B, ...)} the scope's weights of each episode."""
-        return fast
+        """-> {path: (B, ...)} the scope's weights each episode acts with (placement
+        "release": before its pending update)."""
+        return fast[0] if self.placement == "release" else fast

@@ -66,7 +66,8 @@ import jax.numpy as jnp
 from flax import struct, traverse_util
 
 from orgnav_jax.models.trunk import LSTMGates
-from orgnav_jax.tpn.fast_weights import SCOPE_PATHS, _one, _unbatch, policy_ce_grad
+from orgnav_jax.tpn.fast_weights import (
+    PLACEMENTS, SCOPE_PATHS, _one, _unbatch, policy_ce_grad)
 from orgnav_jax.tree import tile, where_rows
 
 SLOT_BLOCK = 10     # slots read per loop iteration: only blocks below the batch's max count
@@ -154,12 +155,14 @@ class LowRankState:
     (B, SLOT_BLOCK, in | H | 4H), slot k in block k // SLOT_BLOCK; count (B,) int32 slots
     in use; newest {site key: {"x", "h", "v"}} (B, ...) the last step's update, written
     into its slot at the start of the next step when newest_on (B,) (a write-behind: see
-    LowRankFastWeights.step)."""
+    LowRankFastWeights.step). pending: placement "release" only, the dense leaves after
+    the newest update, applied with it when the next step commits (None otherwise)."""
     dense: Any
     factors: Any
     count: jax.Array
     newest: Any
     newest_on: jax.Array
+    pending: Any = None
 
 
 def _in_blocks(valid):
@@ -245,16 +248,19 @@ def _interceptor(plan: Plan, factors, count, blocks, newest, perts, seen: dict):
 class LowRankFastWeights:
     """Per-episode fast weights of `plan` for a NavModel (see module docstring)."""
 
-    def __init__(self, model, plan: Plan):
-        self.model, self.plan = model, plan
+    def __init__(self, model, plan: Plan, placement: str = "state"):
+        if placement not in PLACEMENTS:
+            raise ValueError(f"TPN placement {placement!r}: expected one of {PLACEMENTS}")
+        self.model, self.plan, self.placement = model, plan, placement
         self._v_apply = jax.vmap(self._apply_row, in_axes=(None, 0, 0, 0, None, 0, 0, 0, 0))
 
     def __hash__(self):
-        return hash((self.model, self.plan))
+        return hash((self.model, self.plan, self.placement))
 
     def __eq__(self, other):
-        return isinstance(other, LowRankFastWeights) and (self.model, self.plan) == (
-            other.model, other.plan)
+        return isinstance(other, LowRankFastWeights) and (
+            self.model, self.plan, self.placement) == (other.model, other.plan,
+                                                       other.placement)
 
     def _split(self, base):
         flat = traverse_util.flatten_dict(base)
@@ -270,8 +276,10 @@ class LowRankFastWeights:
                    for s in self.plan.sites}
         newest = {s.key: {"x": z(s.din), "h": z(s.hidden), "v": z(4 * s.hidden)}
                   for s in self.plan.sites}
-        return LowRankState(tile(dense, batch), factors, jnp.zeros(batch, jnp.int32), newest,
-                            jnp.zeros(batch, bool))
+        dense = tile(dense, batch)
+        return LowRankState(dense, factors, jnp.zeros(batch, jnp.int32), newest,
+                            jnp.zeros(batch, bool),
+                            dense if self.placement == "release" else None)
 
     def reset(self, base, state: LowRankState, mask) -> LowRankState:
         """mask (B,) bool: those rows go back to the trained weights."""
@@ -310,7 +318,7 @@ class LowRankFastWeights:
                                f"site once (pending {sorted(pending)}, seen {sorted(seen)})")
         return logits[0], (_unbatch(carry), h[0], seen)
 
-    def step(self, base, state: LowRankState, inputs, carry, decide, lr):
+    def step(self, base, state: LowRankState, inputs, carry, decide, lr, commit=None):
         """One test-time step for a batch: forward with the episodes' fast weights;
         decide(logits (B, 6), h (B, H)) -> (target (B,), update (B,) bool, aux); rows with
         `update` take one SGD step of CE(logits, target) and act with the new weights.
@@ -320,8 +328,16 @@ class LowRankFastWeights:
         kept apart in state.newest (the re-run adds its term explicitly) and written at the
         next step. So every step reads the slot buffers only after its single write, and
         XLA updates them in place (writing them after the reads made it copy all of them
-        twice per step, the largest cost at 50 slots)."""
+        twice per step, the largest cost at 50 slots).
+
+        placement "release": the previous step's update is written (and its dense leaves
+        applied) only for rows whose `commit` (B,) is set; this step's update is computed
+        on this step's logits and kept pending, and the step is not re-run."""
         shared, _ = self._split(base)
+        if self.placement == "release":
+            on = state.newest_on & commit
+            state = state.replace(dense=where_rows(on, state.pending, state.dense),
+                                  newest_on=on)
         state = self._commit(state)
         B = state.count.shape[0]
         perts = {s.key: jnp.zeros((B, 4 * s.hidden)) for s in self.plan.sites}
@@ -339,6 +355,9 @@ class LowRankFastWeights:
         dense = jax.tree_util.tree_map(lambda p, g: p - lr * g, state.dense, g_dense)
         newest = {s.key: {"x": seen[s.key]["x"], "h": seen[s.key]["h"],
                           "v": -lr * g_gates[s.key]} for s in self.plan.sites}
+        if self.placement == "release":          # pending until the next step commits it
+            return logits, lstm, state.replace(newest=newest, newest_on=update,
+                                               pending=dense), aux
         new = state.replace(dense=dense, newest=newest, newest_on=update)
         logits2, (lstm2, _, _) = self._v_apply(shared, dense, state.factors, state.count,
                                                blocks, (newest, update.astype(jnp.float32)),
@@ -348,7 +367,10 @@ class LowRankFastWeights:
 
     def materialize(self, base, state: LowRankState):
         """-> {path: (B, ...)} the scope's weights each episode acts with (dense copies,
-        trained + low-rank kernels), as fast_weights.split_scope lays them out (tests)."""
+        trained + low-rank kernels), as fast_weights.split_scope lays them out (tests);
+        placement "release": before the pending update."""
+        if self.placement == "release":
+            state = state.replace(newest_on=jnp.zeros_like(state.newest_on))
         state = self._commit(state)
         flat = traverse_util.flatten_dict(base)
         B = state.count.shape[0]

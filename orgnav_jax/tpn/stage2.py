@@ -6,6 +6,14 @@ TPN's internal memory is exact); the TPN reads that episode's past steps and is 
 with CE(TPN logits, expert action) on the deadlock steps. The base never changes, so the
 collected data do not depend on the TPN's parameters.
 
+Which steps and which label (cfg.placement): "state" (ours), the steps taken at a
+deadlock state, labelled with the expert action there; "release" (the ECCV release's
+agents/agent.py:192-205), the steps whose action led into a deadlock (s_{t+1} visited
+before in the episode, which includes every failed move and every Done), labelled with
+the expert action read after the move, at s_{t+1}. The TPN's logits are those of step t
+either way. cfg.optim "release": the CE summed over an episode's steps (mean over
+episodes), AMSGrad (eps 1e-3): the release's A3C optimiser.
+
     collect(model, base_params, cfg, scenes, key, num)    -> EpisodeBatch (N, T, ...)
     tpn_loss(tpn_params, tpn, batch)                      -> (CE, aux)
     train_tpn(cfg)                                        -> summary (run_dir/checkpoints)
@@ -23,6 +31,7 @@ from flax import struct
 
 from orgnav_jax import env
 from orgnav_jax.compile_cache import compiled_once, computation_of
+from orgnav_jax.constants import DONE
 from orgnav_jax.errors import choose
 from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
@@ -40,8 +49,10 @@ class EpisodeBatch:
     h: jax.Array          # (N, T, hidden) LSTM outputs
     probs: jax.Array      # (N, T, 6) the base's action distribution
     valid: jax.Array      # (N, T) bool: the episode is still running at step t
-    deadlock: jax.Array   # (N, T) bool: the external memory flags step t
-    expert: jax.Array     # (N, T) int32 expert action (NO_ACTION = -1 where none)
+    deadlock: jax.Array   # (N, T) bool: step t is supervised (module docstring: the
+                          # external memory flags s_t, or the step led into a deadlock)
+    expert: jax.Array     # (N, T) int32 its label: the expert action at s_t, or at
+                          # s_{t+1} (placement "release"); NO_ACTION = -1 where none
     success: jax.Array    # (N,) bool: the base reached the target
 
 
@@ -74,6 +85,9 @@ def collect(model, base_params, cfg: TPNConfig, scenes, key, num: int) -> Episod
         deadlock, vision = detect(cfg.memory, vision, obs.deadlock, inputs.glob, fresh)
         expert = scenes.expert_action[state.state, state.target]
         _, state2, _, done, info = v_step(state, action, scenes, params)
+        if cfg.placement == "release":   # the step that led into a deadlock, the label at s_{t+1}
+            deadlock = info["failed"] | info["revisited"] | (action == DONE)
+            expert = scenes.expert_action[state2.state, state2.target]
         state = where_rows(running, state2, state)
         out = (jax.lax.stop_gradient(h), jax.lax.stop_gradient(jax.nn.softmax(logits)),
                running, deadlock, expert.astype(jnp.int32))      # the base is frozen
@@ -89,19 +103,27 @@ def collect(model, base_params, cfg: TPNConfig, scenes, key, num: int) -> Episod
                         batch_major(deadlock), batch_major(expert), success)
 
 
-def tpn_loss(params, tpn, batch: EpisodeBatch):
+def tpn_loss(params, tpn, batch: EpisodeBatch, optim: str = "ours"):
     """Mean CE(TPN logits, expert action) over valid deadlock steps -> (loss, aux with
-    accuracy (argmax == expert) and the number of such steps)."""
+    accuracy (argmax == expert) and the number of such steps). optim "release": the loss
+    is the CE summed over each episode's steps, mean over episodes (aux's ce stays the
+    mean over steps)."""
     logits = tpn.apply(params, batch.h, batch.probs, batch.valid)
     mask = (batch.valid & batch.deadlock).astype(jnp.float32)
     ce, steps = imitation_loss(logits, batch.expert, mask)
+    loss = choose({"ours": lambda: ce,
+                   "release": lambda: imitation_loss(logits, batch.expert, mask, "per_step")[0]
+                   * mask.shape[1]}, optim, "stage-2 optimiser (optim)")()
     hit = (jnp.argmax(logits, -1) == batch.expert) * mask * (batch.expert >= 0)
-    return ce, {"ce": ce, "accuracy": hit.sum() / jnp.maximum(steps, 1.0),
+    return loss, {"ce": ce, "accuracy": hit.sum() / jnp.maximum(steps, 1.0),
                 "deadlock_steps": steps, "base_success": batch.success.mean()}
 
 
 def make_optimizer(cfg: TPNConfig):
-    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.lr))
+    adam = choose({"ours": lambda: optax.adam(cfg.lr),
+                   "release": lambda: optax.amsgrad(cfg.lr, eps=1e-3)},
+                  cfg.optim, "stage-2 optimiser (optim)")()
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), adam)
 
 
 def make_tpn_chunk(cfg: TPNConfig, model, tpn, optimizer):
@@ -114,7 +136,7 @@ def make_tpn_chunk(cfg: TPNConfig, model, tpn, optimizer):
         def one(runner, _):
             key, k = jax.random.split(runner.key)
             batch = collect(model, base_params, cfg, scenes, k, cfg.num_envs)
-            (loss, aux), grads = grad_fn(runner.params, tpn, batch)
+            (loss, aux), grads = grad_fn(runner.params, tpn, batch, cfg.optim)
             updates, opt_state = optimizer.update(grads, runner.opt_state, runner.params)
             runner = TPNRunner(optax.apply_updates(runner.params, updates), opt_state, key,
                                runner.update + 1)

@@ -8,6 +8,13 @@ CE(policy logits, target), and the agent acts greedily with the updated weights.
 weights are reset to the trained parameters at each episode start and before steps
 reset_every, 2 reset_every, ... of it (the release's 50; 0: never within an episode).
 
+cfg.placement "release" (the ECCV release's agents/agent.py:149-188 and
+runners/train_util.py:9-37): step t acts with its logits as they are; their update
+(CE(policy logits of step t, the TPN's argmax of step t)) is kept pending, and step t+1
+applies it first if s_{t+1} is a deadlock (or always, when="all"); step t is not re-run.
+"state" (ours, the default): the update is on the deadlock state's own logits and the
+step is re-run with the new weights.
+
 The fast weights of `scope` (default "all", the release's: every parameter of the
 navigation network) are low-rank deltas of the LSTM kernels plus dense copies of the
 rest (tpn/lowrank.py); the actor head alone keeps a dense copy and runs the model up to
@@ -87,8 +94,9 @@ def fast_weights(model, cfg: TestTime, base_params, impl: str = "auto"):
     if impl not in IMPLS:
         raise ValueError(f"fast weights impl {impl!r}: expected one of {IMPLS}")
     if impl == "dense" or (impl == "auto" and cfg.scope == "actor"):
-        return DenseFastWeights(model, cfg.scope)
-    return LowRankFastWeights(model, make_plan(base_params, cfg.scope, update_slots(cfg)))
+        return DenseFastWeights(model, cfg.scope, cfg.placement)
+    return LowRankFastWeights(model, make_plan(base_params, cfg.scope, update_slots(cfg)),
+                              cfg.placement)
 
 
 def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float = 0.0,
@@ -127,26 +135,35 @@ def _tpn_policy(model, tpn: TPN, cfg: TestTime, name: str, dropout: float,
             inputs = inputs._replace(drop=dropout_mask(
                 jax.random.fold_in(key, 1), dropout, model.dropout_shape(B)))
 
+        deadlock, vision = detect(cfg, carry.vision, obs.deadlock, inputs.glob, fresh)
+        flagged = choose({"deadlock": deadlock, "all": jnp.ones_like(deadlock)},
+                         cfg.when, "TPN update steps (when)")
+        # an episode that said Done is over (the evaluation scan keeps stepping its
+        # frozen last observation): no more updates, so fewer slots to read
+        live = obs.prev_action[:, DONE] == 0
+        release = choose({"state": False, "release": True}, cfg.placement, "TPN placement")
+        # "state": this step updates where flagged; "release": every live step's update is
+        # computed and kept pending, and this step first applies the previous step's
+        # where this state is flagged (s_{t+1} of that step)
+        commit = flagged & live & ~fresh if release else None
+
         def decide(logits, h):
             tpn_logits, r, memory, read = tpn.apply(params["tpn"], h,
                                               memory_reset(carry.memory, fresh),
                                               method=tpn.step_logits)
-            deadlock, vision = detect(cfg, carry.vision, obs.deadlock, inputs.glob, fresh)
-            update = choose({"deadlock": deadlock, "all": jnp.ones_like(deadlock)},
-                            cfg.when, "TPN update steps (when)")
-            # an episode that said Done is over (the evaluation scan keeps stepping its
-            # frozen last observation): no more updates, so fewer slots to read
-            update = update & (obs.prev_action[:, DONE] == 0)
             target = choose({
                 "tpn": lambda: jnp.argmax(tpn_logits, -1),
                 "random": lambda: jax.random.randint(key, fresh.shape, 0, NUM_ACTIONS)},
                 cfg.target, "TPN update target")()
-            return target, update, (update, r, memory, vision, read)
+            update = live if release else flagged & live
+            return target, update, (r, memory, read)
 
         # the model with the episode's fast weights; updating rows take one SGD step and
-        # act with the updated weights
-        logits, lstm, fast, (update, r, memory, vision, read) = fw.step(
-            params["base"], fast, inputs, reset_carry(carry.lstm, fresh), decide, cfg.tpn_lr)
+        # act with the updated weights (placement "release": module docstring)
+        logits, lstm, fast, (r, memory, read) = fw.step(
+            params["base"], fast, inputs, reset_carry(carry.lstm, fresh), decide, cfg.tpn_lr,
+            **({"commit": commit} if release else {}))
+        update = commit if release else flagged & live
         memory = memory_record(memory, r, jax.nn.softmax(logits))
         updates = jnp.where(fresh, 0, carry.updates) + update.astype(jnp.int32)
         return jnp.argmax(logits, -1).astype(jnp.int32), TPNCarry(
@@ -179,7 +196,9 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
     tpn_params, _ = ckpt.restore(like, best=True)
     name = f"{nav_cfg.model}+TPN" + ("" if cfg.when == "deadlock" else f"-{cfg.when}") + \
         ("" if cfg.target == "tpn" else f"-{cfg.target}") + \
-        ("-train" if cfg.tpn_train_mode else "")          # dropout on: the release's confound
+        ("-train" if cfg.tpn_train_mode else "") + \
+        ("-release-placement" if cfg.placement == "release" else "")
+    # ("-train": dropout on, the release's confound)
     return tpn_policy(model, tpn, cfg.test_time(), name,
                       float(getattr(nav_cfg, "dropout", 0.0))), \
         {"base": base_params, "tpn": tpn_params}, nav_cfg, cfg
