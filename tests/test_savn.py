@@ -232,23 +232,61 @@ def test_the_chunk_compiles_once(rooms):
 
 
 def test_dsavn_preset_trains_and_evaluates_from_the_cli(tiny_dir, tmp_path):
-    """(2 chunks of the computation of the compiles-once test: its program is reused.)"""
+    """(chunks of the computation of the compiles-once test: its program is reused.) The
+    budget counts the env steps the episodes really took (issue 40): the run stops at the
+    first chunk whose running count reaches it, each record's env_steps is that count, and
+    a resumed run with a larger budget continues the same count."""
     from orgnav_jax.errors import run_cli
     from orgnav_jax.train import main
+    from orgnav_jax.training.config import CONFIG_VERSION
     run = tmp_path / "dsavn"
     argv = ["--preset", "dsavn", "--scenes-dir", tiny_dir, "--run-dir", str(run),
-            "--total-env-steps", "96", "--eval-every-chunks", "2",
+            "--total-env-steps", "60", "--eval-every-chunks", "2",
             "--eval-episodes-per-room-type", "2", "--quiet", "--no-test",
             *sum(([f"--{k.replace('_', '-')}", str(v)]
                   for k, v in {**TINY_WIDTHS, **CHUNK_FIELDS}.items()), [])]
     assert run_cli(main, argv) == 0
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["savn"] and cfg["model"] == "baseline" and cfg["version"] == 6
-    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    train = [r for r in records if r.get("kind", r.get("type")) == "train" or
-             "env_steps_real" in r]
-    assert train and all(r["env_steps_real"] > 0 for r in train if "env_steps_real" in r)
+    assert cfg["savn"] and cfg["model"] == "baseline" and cfg["version"] == CONFIG_VERSION
+
+    def train_records():
+        records = [json.loads(line) for line in
+                   (run / "metrics.jsonl").read_text().splitlines()]
+        return [r for r in records if "env_steps_real" in r]
+
+    def check_counts(train, budget):
+        real = [r["env_steps_real"] for r in train]
+        assert all(0 < x <= 2 * 3 * 8 for x in real)       # 2 updates x 3 episodes x cap 8
+        assert [r["env_steps"] for r in train] == list(np.cumsum(real).astype(int))
+        assert train[-1]["env_steps"] >= budget > (train[-2]["env_steps"] if len(train) > 1
+                                                   else 0)
+
+    first = train_records()
+    check_counts(first, 60)
+    assert run_cli(main, ["--run-dir", str(run), "--resume", "--total-env-steps", "120",
+                          "--quiet", "--no-test"]) == 0
+    again = train_records()
+    assert again[:len(first)] == first and len(again) > len(first)
+    check_counts(again, 120)
     assert (run / "best").is_dir()
     from orgnav_jax.training.runs import load_run_policy
     policy, params, loaded = load_run_policy(run)
     assert loaded.savn and set(params) == {"nav", "ll"} and "SAVN" in policy.name
+
+
+def test_resuming_a_savn_run_that_counted_episode_slots_is_refused(tmp_path, capsys):
+    """A SAVN run of config version <= 6 counted every episode at its cap: resuming it
+    under the real-step count is one line, exit 2, before anything is written."""
+    from orgnav_jax.errors import run_cli
+    from orgnav_jax.train import main
+    from orgnav_jax.training.config import get_config
+    run = tmp_path / "old"
+    run.mkdir()
+    doc = {k: v for k, v in json.loads(get_config("dsavn").to_json()).items()}
+    doc.update(version=6, run_dir=str(run))
+    (run / "config.json").write_text(json.dumps(doc))
+    before = sorted(p.name for p in run.iterdir())
+    assert run_cli(main, ["--run-dir", str(run), "--resume", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "episode slots" in err[0] and "config version 6" in err[0]
+    assert sorted(p.name for p in run.iterdir()) == before

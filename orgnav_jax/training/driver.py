@@ -62,6 +62,11 @@ class Stage:
     progress_keys: train-record fields shown on the progress bar (mean of the last 10).
     place(runner) -> the runner the chunk takes: the local runner (stacked for a
         population) put on the device mesh (training/scale.py); default: as it is.
+    steps_key: when the env steps of a chunk vary (SAVN: the steps its episodes really
+        took, issue 40), the chunk's metric that holds them. The budget `total` then
+        counts them: the run stops after the first chunk whose running count reaches it,
+        per_chunk is the most a chunk can take, the log's step, the progress bar and the
+        checkpoints' steps are the running count. One run only (no population).
     """
     name: str                      # progress-bar label, e.g. "train baseline"
     unit: str                      # "step" or "ep"
@@ -76,9 +81,11 @@ class Stage:
     best_keys: tuple[str, ...]
     progress_keys: tuple[str, ...] = ()
     place: Callable[[Any], Any] = lambda runner: runner
+    steps_key: str | None = None
 
     @property
     def num_chunks(self) -> int:
+        """The run's chunks (the fewest, with steps_key)."""
         return max(1, math.ceil(self.total / self.per_chunk))
 
     def score(self, record: dict) -> tuple:
@@ -108,10 +115,20 @@ def resumed_chunk(meta: dict, step: int, stage: Stage, where: str) -> int:
     """The chunks done by the checkpoint at `step` (its metadata, read by
     checkpoints.read_meta), checked against the run: 1 <= chunk <= the stage's number of
     chunks, chunk x env steps (episodes) per chunk == step, and its best record holding
-    the stage's score keys. UserError naming the checkpoint and the field otherwise (a
-    resume must not continue from a chunk the run never reached)."""
+    the stage's score keys (with stage.steps_key: chunk <= step <= chunk x per_chunk, and
+    the chunk before it short of the budget). UserError naming the checkpoint and the
+    field otherwise (a resume must not continue from a chunk the run never reached)."""
     chunk = meta["chunk"]
-    if not 1 <= chunk <= stage.num_chunks or chunk * stage.per_chunk != step:
+    if stage.steps_key is not None:
+        bad = not 1 <= chunk <= step <= chunk * stage.per_chunk or (
+            step - stage.per_chunk >= stage.total)
+    else:
+        bad = not 1 <= chunk <= stage.num_chunks or chunk * stage.per_chunk != step
+    if bad and stage.steps_key is not None:
+        raise UserError(f"{where} metadata: field 'chunk': {chunk!r} does not fit its step "
+                        f"{step:,} (each chunk takes 1 to {stage.per_chunk:,} "
+                        f"{stage.unit}s; the budget is {stage.total:,})")
+    if bad:
         raise UserError(f"{where} metadata: field 'chunk': expected {step // stage.per_chunk}"
                         f" (its step {step:,} / {stage.per_chunk:,} {stage.unit}s per chunk; "
                         f"the run has {stage.num_chunks} chunks), got {chunk!r}")
@@ -123,8 +140,9 @@ def resumed_chunk(meta: dict, step: int, stage: Stage, where: str) -> int:
 
 
 def _restore(members: list[_Member], runners: list, stacked: bool,
-             stage: Stage) -> tuple[int, list]:
-    """Resume: each member's runner from its checkpoint -> (chunks done, runners). One
+             stage: Stage) -> tuple[int, int, list]:
+    """Resume: each member's runner from its checkpoint -> (chunks done, steps done,
+    runners). One
     run takes its newest readable checkpoint; a population the newest step every member
     has (they save together, so at most the last save of a kill differs)."""
     def where(m: _Member, step: int) -> str:
@@ -133,15 +151,15 @@ def _restore(members: list[_Member], runners: list, stacked: bool,
     if not stacked:
         m = members[0]
         if m.ckpt.latest_step() is None:
-            return 0, runners
+            return 0, 0, runners
         runner, meta = m.ckpt.restore(runners[0], fallback=True)
         step = m.ckpt.latest_step()          # the one restored (broken ones set aside)
         chunk = resumed_chunk(meta, step, stage, where(m, step))
         m.best = meta["best"]
-        return chunk, [runner]
+        return chunk, step, [runner]
     steps = [set(m.ckpt.latest.all_steps()) for m in members]
     if not any(steps):
-        return 0, runners
+        return 0, 0, runners
     common = set.intersection(*steps)
     if not common:
         have = "; ".join(f"{m.run_dir}: {sorted(s) or 'none'}" for m, s in zip(members, steps))
@@ -156,7 +174,7 @@ def _restore(members: list[_Member], runners: list, stacked: bool,
     if len(chunks) != 1:
         raise UserError(f"--resume: the seeds' checkpoints at step {step} are at different "
                         f"chunks {sorted(chunks)}; resume them one seed at a time")
-    return chunks.pop(), out
+    return chunks.pop(), step, out
 
 
 def _stack(runners: list):
@@ -182,15 +200,23 @@ def _duration(seconds: float) -> str:
 ESTIMATE_AFTER = 3     # chunks of this process before the wall-time estimate (1: compile)
 
 
-def wall_time_estimate(stage: Stage, chunk: int, seconds: list[float], members: int) -> str:
-    """The one-line estimate from the chunks timed after the compile chunk."""
+def wall_time_estimate(stage: Stage, chunk: int, seconds: list[float], members: int,
+                       timed_steps: float | None = None, steps: int | None = None) -> str:
+    """The one-line estimate from the chunks timed after the compile chunk (with
+    stage.steps_key: timed_steps, the steps they took, and steps, the run's so far)."""
     per_chunk = float(np.mean(seconds))
+    who = f" ({members} runs together)" if members > 1 else ""
+    where = f"over chunks {chunk - len(seconds) + 1}-{chunk} (compile excluded)"
+    if stage.steps_key is not None:
+        rate = timed_steps / float(np.sum(seconds))
+        return (f"{stage.name}: {rate:,.0f} {stage.unit}s/s {where}: the remaining "
+                f"{max(stage.total - steps, 0):,} of {stage.total:,} {stage.unit}s take "
+                f"about {_duration(max(stage.total - steps, 0) / rate)} (a whole run: "
+                f"{_duration(stage.total / rate)}; evaluations and checkpoints extra)")
     rate = stage.per_chunk * members / per_chunk
     left = (stage.num_chunks - chunk) * per_chunk
     whole = stage.num_chunks * per_chunk
-    who = f" ({members} runs together)" if members > 1 else ""
-    return (f"{stage.name}: {rate:,.0f} {stage.unit}s/s{who} over chunks "
-            f"{chunk - len(seconds) + 1}-{chunk} (compile excluded): the remaining "
+    return (f"{stage.name}: {rate:,.0f} {stage.unit}s/s{who} {where}: the remaining "
             f"{stage.num_chunks - chunk} of {stage.num_chunks} chunks take about "
             f"{_duration(left)} (a whole run: {_duration(whole)}; evaluations and "
             "checkpoints extra)")
@@ -204,60 +230,71 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
     stage.chunk/stage.place take the stack (metrics then have that axis); stage.validate
     takes one member's runner. The callers hold the run directories open."""
     primary = is_primary()
+    if stage.steps_key is not None and (stacked or len(runners) != 1):
+        raise ValueError(f"{stage.name}: a stage counting varying steps runs one run")
     members = [_Member(cfg, Path(d), RunCheckpoints(d, cfg.keep_checkpoints),
                        {k: -1.0 for k in stage.score_keys}) for cfg, d in zip(cfgs, run_dirs)]
     if resume:        # a malformed log is refused before anything is written
         for m in members:
             if (m.run_dir / METRICS_FILE).exists():
                 read_metrics(m.run_dir, stage.step_name, skip_broken=True)
-    chunk, runners = _restore(members, runners, stacked, stage) if resume else (0, runners)
+    chunk, steps, runners = (_restore(members, runners, stacked, stage) if resume
+                             else (0, 0, runners))
     for m in members:      # after the restore: a failed resume changes nothing
         if primary:
             write_config(m.run_dir, m.cfg)
             m.log = MetricsLog(m.run_dir, step_name=stage.step_name,
-                               resume_from=chunk * stage.per_chunk if resume else None)
+                               resume_from=steps if resume else None)
         if resume:
-            m.ckpt.drop_best_after(chunk * stage.per_chunk)
+            m.ckpt.drop_best_after(steps)
     runner = stage.place(_stack(runners) if stacked else runners[0])
     member_runner = (lambda i: _take(runner, i)) if stacked else (lambda i: runner)
     num_chunks = stage.num_chunks
-    bar = tqdm(total=num_chunks * stage.per_chunk, initial=chunk * stage.per_chunk,
+    varying = stage.steps_key is not None
+
+    def done(chunk: int, steps: int) -> bool:
+        return steps >= stage.total if varying else chunk >= num_chunks
+
+    bar = tqdm(total=stage.total if varying else num_chunks * stage.per_chunk, initial=steps,
                unit=stage.unit, unit_scale=True, desc=stage.name,
                disable=not (progress and primary), file=sys.stderr)
     recent: dict[str, list] = {k: [] for k in stage.progress_keys}
-    t_start, compile_s, timed = time.perf_counter(), None, []
+    t_start, compile_s, timed, timed_steps = time.perf_counter(), None, [], 0.0
     try:
-        while chunk < num_chunks:
+        while not done(chunk, steps):
             t0 = time.perf_counter()
             new_runner, metrics = stage.chunk(runner)
             metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
             finite = np.atleast_1d(metrics.pop("loss_finite"))
             dt = time.perf_counter() - t0
+            took = (int(np.asarray(metrics[stage.steps_key]).sum()) if varying
+                    else stage.per_chunk)
             if compile_s is None:
                 compile_s = dt
             else:
                 timed.append(dt)
+                timed_steps += took
             if not finite.all():
                 bad = [str(m.run_dir) for m, ok in zip(members, finite) if not ok]
                 where = f" (run {', '.join(bad)})" if stacked else ""
                 raise NonFiniteLoss(f"non-finite loss in chunk {chunk + 1} of {stage.name}"
                                     f"{where}; the run stopped and the last good checkpoint "
                                     f"in {bad[0]}/checkpoints is kept")
-            runner, chunk = new_runner, chunk + 1
-            step = chunk * stage.per_chunk
+            runner, chunk, steps = new_runner, chunk + 1, steps + took
+            step = steps
             for i, m in enumerate(members):
                 record = stage.summarize({k: v[i] for k, v in metrics.items()} if stacked
                                          else metrics)
-                record[stage.rate_key] = stage.per_chunk / dt
+                record[stage.rate_key] = took / dt
                 if m.log:
                     m.log.write("train", step, record)
                 for k in stage.progress_keys:
                     recent[k] = (recent[k] + [record[k]])[-10 * len(members):]
-            bar.update(stage.per_chunk)
-            if len(timed) == ESTIMATE_AFTER - 1 and chunk < num_chunks and primary:
-                bar.write(wall_time_estimate(stage, chunk, timed, len(members)),
-                          file=sys.stderr)
-            last = chunk == num_chunks
+            bar.update(took)
+            last = done(chunk, steps)
+            if len(timed) == ESTIMATE_AFTER - 1 and not last and primary:
+                bar.write(wall_time_estimate(stage, chunk, timed, len(members), timed_steps,
+                                             steps), file=sys.stderr)
             if chunk % cfgs[0].eval_every_chunks == 0 or last:
                 for i, m in enumerate(members):
                     mine = member_runner(i)
@@ -269,7 +306,7 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
                                   stage.step_name: step}
                         m.ckpt.save(step, mine, {"chunk": chunk, "val": val}, best=True)
             # after this chunk's val evaluation, so the bar shows the last best_val
-            bar.set_postfix(rate=f"{stage.per_chunk * len(members) / dt:.0f}/s",
+            bar.set_postfix(rate=f"{took * len(members) / dt:.0f}/s",
                             **{k: f"{np.mean(v):.3f}" for k, v in recent.items()},
                             best_val=f"{max(m.best[stage.score_keys[0]] for m in members):.3f}")
             if chunk % cfgs[0].checkpoint_every_chunks == 0 or last:
@@ -283,6 +320,6 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
             if m.log:
                 m.log.close()
     wall = time.perf_counter() - t_start
-    return [{"run_dir": str(m.run_dir), stage.step_name: chunk * stage.per_chunk,
+    return [{"run_dir": str(m.run_dir), stage.step_name: steps,
              "chunks": chunk, "best_val": m.best, "compile_plus_first_chunk_s": compile_s,
              "wall_s": wall, "runner": member_runner(i)} for i, m in enumerate(members)]

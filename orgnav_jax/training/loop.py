@@ -96,15 +96,43 @@ def savn_runner(cfg: TrainConfig, model, train_scenes):
                                  jax.random.PRNGKey(cfg.seed))
 
 
+# The config version from which a SAVN run's budget counts the env steps its episodes
+# really took (issue 40); before, every episode counted at its cap (episode slots).
+SAVN_REAL_STEPS_VERSION = 7
+
+
+def check_savn_resume(run_dir) -> None:
+    """UserError (one line) when run_dir holds a SAVN run whose config predates
+    SAVN_REAL_STEPS_VERSION: its env_steps count episode slots, not real env steps, so
+    continuing it under the new count would mix the two. Nothing to check without a
+    config.json (a new run)."""
+    import json
+    path = Path(run_dir) / "config.json"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return                     # no saved run (or load_config reports the bad file)
+    version = doc.get("version") if isinstance(doc, dict) else None
+    if (isinstance(version, int) and version < SAVN_REAL_STEPS_VERSION
+            and doc.get("savn") is True):
+        raise UserError(f"--resume {run_dir}: a SAVN run of config version {version}, whose "
+                        "env_steps count episode slots (every episode at its cap); this "
+                        "version counts the env steps the episodes really took (issue 40): "
+                        "start a new run, or evaluate this one as it is")
+
+
 def savn_stage(cfg: TrainConfig, model, train_scenes, val_scenes, val_episodes) -> Stage:
     """Stage 1 in SAVN mode (training/savn.py): updates of num_envs whole episodes with
-    inner steps; val with the test-time inner steps (savn_policy)."""
+    inner steps; val with the test-time inner steps (savn_policy). The budget counts the
+    env steps the episodes really took (the chunk's env_steps_real): the run stops after
+    the first chunk whose running count reaches total_env_steps."""
     _, learned, chunk = cached_savn_chunk(compute_config(cfg), model)
     policy = savn.run_policy(cfg, model, val_scenes)
     return Stage(
         name=f"train {cfg.model}+savn", unit="step", step_name="env_steps",
-        rate_key="steps_per_s", per_chunk=cfg.updates_per_chunk * cfg.steps_per_update,
-        total=cfg.num_updates * cfg.steps_per_update,
+        rate_key="steps_per_s",
+        per_chunk=cfg.updates_per_chunk * cfg.num_envs * cfg.episode_cap,
+        total=cfg.total_env_steps, steps_key="env_steps_real",
         chunk=lambda runner: chunk(runner, train_scenes), summarize=chunk_summary,
         validate=lambda runner: evaluation.evaluate(
             policy, runner.params, val_scenes, val_episodes,
@@ -117,6 +145,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
           stop_after_chunks: int | None = None) -> dict:
     """Train (or resume) the run in cfg.run_dir -> summary dict (best val, env steps).
     stop_after_chunks ends early (for tests of kill-and-resume)."""
+    if resume and cfg.savn:
+        check_savn_resume(cfg.run_dir)
     mesh = scale.make_mesh(cfg.devices)
     scale.check_batch(cfg.num_envs, mesh)
     # config ranges, scenes (their widths those of a resumed run's checkpoints), memory:
