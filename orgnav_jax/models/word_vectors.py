@@ -31,6 +31,7 @@ claiming a semantic prior it would not have. Rows trained with the stand-in are 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import re
 from pathlib import Path
 
@@ -132,8 +133,10 @@ def category_vectors(path: str | Path, categories=CATEGORIES) -> np.ndarray:
     return np.stack(rows).astype(np.float32)
 
 
+@functools.lru_cache(maxsize=8)
 def category_table(path: str | Path | None) -> WordTable:
-    """The WordTable of a config's word_vectors: the file's, or the stand-in (None)."""
+    """The WordTable of a config's word_vectors: the file's, or the stand-in (None).
+    Read once per process and path (models are built several times per run)."""
     if path is None:
         return WordTable.of(stand_in(), STAND_IN)
     return WordTable.of(category_vectors(path), str(path))

@@ -77,6 +77,9 @@ def preflight(cfg: TrainConfig, resumed=()):
     if cfg.savn:
         from orgnav_jax.training.savn import check_savn_config
         check_savn_config(cfg)
+    if cfg.model == "we" and cfg.target_input == "word_vector" and cfg.word_vectors:
+        from orgnav_jax.models.word_vectors import category_table
+        category_table(cfg.word_vectors)      # a missing or malformed file: one line
     scenes = scenes_for(cfg)
     check_training_scenes(scenes, cfg)
     for run_dir in resumed:

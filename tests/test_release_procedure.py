@@ -1,0 +1,152 @@
+"""Issue 41: the releases' procedure as options. WE / SAVN's target in SAVN's layout with
+word vectors read from a GloVe text file (or the stand-in), runs saved before keeping
+their one-hot maps; `--optim release`; SAVN's sampled evaluation. (The TPN's placement:
+tests/test_tpn_lowrank.py and tests/test_tpn.py.)"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from orgnav_jax.constants import CATEGORIES
+from orgnav_jax.models import build_model
+from orgnav_jax.models.navmodel import _init_params, dummy_inputs
+from orgnav_jax.models.word_vectors import (
+    STAND_IN, camel_words, category_table, category_vectors, label, stand_in)
+from orgnav_jax.training.config import get_config, load_config
+from orgnav_jax.training.update import make_optimizer
+
+WIDTHS = dict(hidden=8, glob_channels=2, fuse_channels=2, action_embed=3)
+D = 5
+
+
+def glove_file(path, extra=()):
+    """A small GloVe text file: the lower-case words of every category, D = 5, and
+    `extra` lines; -> {word: vector}."""
+    rng = np.random.default_rng(0)
+    words = sorted({w for c in CATEGORIES for w in camel_words(c)})
+    vectors = {w: rng.standard_normal(D).round(4) for w in words}
+    lines = [f"{w} " + " ".join(f"{x:.4f}" for x in v) for w, v in vectors.items()]
+    path.write_text("\n".join(["the 0 0 0 0 1", *lines, *extra]) + "\n")
+    return vectors
+
+
+def test_word_vectors_are_read_from_a_glove_file_and_a_malformed_one_is_refused(tmp_path):
+    good = tmp_path / "glove.txt"
+    vectors = glove_file(good, extra=["coffeemachine 1 2 3 4 5"])
+    table = category_vectors(good)
+    assert table.shape == (22, D) and table.dtype == np.float32
+    i = CATEGORIES.index
+    np.testing.assert_allclose(table[i("Television")], vectors["television"], rtol=1e-6)
+    # a name the file has whole wins; else the mean of its camel-case words
+    np.testing.assert_allclose(table[i("CoffeeMachine")], [1, 2, 3, 4, 5])
+    np.testing.assert_allclose(table[i("AlarmClock")],
+                               (vectors["alarm"] + vectors["clock"]) / 2, rtol=1e-6)
+    assert camel_words("StoveBurner") == ["stove", "burner"] and \
+        camel_words("TVStand") == ["tv", "stand"]
+    cases = {
+        "short.txt": ("the 0 0 0 0 1\nbook 1 2 3\n", "short.txt, line 2: 3 numbers, expected 5"),
+        "nan.txt": ("book 1 2 x 4 5\n", "nan.txt, line 1: 'book' has a value that is not a "
+                                        "number"),
+        "inf.txt": ("book 1 2 inf 4 5\n", "inf.txt, line 1: 'book' has a value that is not a "
+                                          "finite"),
+        "empty.txt": ("", "empty.txt: empty file"),
+        "blank.txt": ("book 1 2\n\nbowl 1 2\n", "blank.txt, line 2: empty line"),
+        "lack.txt": ("book 1 2\n", "lack.txt: no vector for 'alarm' (category AlarmClock"),
+    }
+    for name, (text, message) in cases.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(ValueError) as err:
+            category_vectors(tmp_path / name)
+        assert message in str(err.value) and "\n" not in str(err.value), name
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        category_vectors(tmp_path / "absent.txt")
+    # the stand-in: fixed unit vectors, 300-d, labelled as such
+    a = stand_in()
+    assert a.shape == (22, 300) and np.allclose(np.linalg.norm(a, axis=1), 1)
+    np.testing.assert_array_equal(category_table(None).array(), a)
+    assert STAND_IN in label(None) and "glove.txt" in label(str(good))
+
+
+def test_we_is_savns_layout_and_old_we_runs_keep_the_onehot_maps(tmp_path):
+    """The target's vector -> Dense 64 -> ReLU, the same 64 values at every cell, fused
+    with G + 64 + A channels; another file's vectors change the output. A version-6 WE
+    config reads as target_input "onehot_maps" and builds the encoder it was trained with."""
+    path = tmp_path / "glove.txt"
+    glove_file(path)
+    cfg = get_config("we", word_vectors=str(path), **WIDTHS)
+    model = build_model(cfg, None)
+    inputs = dummy_inputs(22, 4, 4)._replace(target=jax.nn.one_hot(jnp.array([5]), 22))
+    params = _init_params(model, jax.random.PRNGKey(0), 22, 4, 4)      # jitted
+    enc = params["params"]["encoder"]["embed_glove"]
+    assert enc["kernel"].shape == (D, 64)
+    assert params["params"]["trunk"]["fuse_1x1"]["kernel"].shape == (2 + 64 + 3, 2)
+    maps = jax.jit(lambda p, x: model.apply(p, x.app, x.box, x.conf, x.target,
+                                            method=lambda m, *a: m.encoder(*a)))(params, inputs)
+    want = jax.nn.relu(category_vectors(path)[5] @ enc["kernel"] + enc["bias"])
+    assert maps.shape == (1, 64, 49)
+    np.testing.assert_allclose(maps[0], np.repeat(np.asarray(want)[:, None], 49, 1),
+                               rtol=1e-5, atol=1e-6)
+    stand = build_model(dataclasses.replace(cfg, word_vectors=None), None)
+    p2 = jax.eval_shape(lambda: stand.init({"params": jax.random.PRNGKey(0)}, inputs,
+                                           stand.initial_carry(1)))
+    assert p2["params"]["encoder"]["embed_glove"]["kernel"].shape == (300, 64)
+    # a WE run saved before issue 41 (config version 6) keeps its one-hot maps
+    doc = json.loads(cfg.to_json())
+    for k in ("target_input", "word_vectors", "optim", "savn_act"):
+        doc.pop(k)
+    (tmp_path / "config.json").write_text(json.dumps({**doc, "version": 6}))
+    old = load_config(tmp_path)
+    assert (old.target_input, old.word_vectors, old.optim, old.savn_act) == (
+        "onehot_maps", None, "ours", "greedy")
+    m_old = build_model(old, None)
+    p_old = jax.eval_shape(lambda: m_old.init({"params": jax.random.PRNGKey(0)}, inputs,
+                                              m_old.initial_carry(1)))
+    assert p_old["params"]["encoder"]["target_embedding"]["kernel"].shape == (22, 22 * 49)
+
+
+def test_a_malformed_word_vector_file_is_one_line_before_any_write(tmp_path, tiny_dir,
+                                                                   cli_error):
+    from orgnav_jax.train import main
+    bad = tmp_path / "bad.txt"
+    bad.write_text("book 1 2 3\nbowl 1 2\n")
+    run = tmp_path / "run"
+    line = cli_error(main, ["--preset", "we", "--scenes-dir", tiny_dir, "--run-dir", run,
+                            "--word-vectors", bad, "--quiet"])
+    assert "bad.txt, line 2: 2 numbers, expected 3" in line
+    assert not run.exists()
+
+
+def test_optim_release_is_the_releases_settings():
+    cfg = get_config("baseline", optim="release")
+    assert (cfg.lr, cfg.adam_eps, cfg.max_grad_norm, cfg.gae_lambda, cfg.rollout_len) == (
+        1e-4, 1e-3, 100.0, 1.0, 30)
+    assert get_config("baseline", optim="release", lr=3e-4).lr == 3e-4    # given: kept
+    assert get_config("baseline").optim == "ours" and get_config("baseline").lr == 7e-4
+    params = {"w": jnp.ones(3)}
+    big = {"w": jnp.array([3e3, 4e3, 0.0])}             # norm 5,000
+    for savn, clipped in ((False, True), (True, False)):
+        opt = make_optimizer(dataclasses.replace(cfg, savn=savn))
+        state = opt.init(params)
+        _, state = opt.update(big, state, params)
+        amsgrad = [s for s in jax.tree_util.tree_leaves(
+            state, is_leaf=lambda s: isinstance(s, optax.ScaleByAmsgradState))
+            if isinstance(s, optax.ScaleByAmsgradState)]
+        assert len(amsgrad) == 1, savn                    # AMSGrad, not Adam
+        norm = float(jnp.linalg.norm(amsgrad[0].mu["w"])) / 0.1   # (1 - b1) x the gradient
+        assert np.isclose(norm, 100.0 if clipped else 5000.0, rtol=1e-4), (savn, norm)
+
+
+def test_savn_act_is_a_checked_option():
+    """SAVN's evaluation samples in its release (agents/agent.py:120): savn_act "sample";
+    the default stays greedy (not chosen on val yet)."""
+    assert get_config("savn").savn_act == "greedy"
+    assert get_config("savn", savn_act="sample").savn_act == "sample"
+    with pytest.raises(ValueError, match="config field 'savn_act': 'argmax'"):
+        get_config("savn", savn_act="argmax")
