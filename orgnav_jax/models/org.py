@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from orgnav_jax.errors import choose
 from orgnav_jax.models.encoders import MAP_CELLS, location_features
 from orgnav_jax.models.trunk import cast
 
@@ -93,12 +94,12 @@ class ReleasedORGEncoder(nn.Module):
 
     @nn.compact
     def __call__(self, app, box, conf, target, train: bool = False):
-        if self.wiring not in ("release", "alternate"):
-            raise ValueError(f"wiring {self.wiring!r}: expected 'release' or 'alternate'")
+        release = choose({"release": True, "alternate": False}, self.wiring,
+                         "released ORG wiring")
         C, dt = app.shape[-2], self.dtype
         x = location_features(box, conf, target)                     # (B, C, 6)
         r = nn.relu(nn.Dense(C, name="relation_1", dtype=dt)(x))     # (B, C, C): [i, j]
-        if self.wiring == "release":
+        if release:
             r = jnp.swapaxes(r, -1, -2)                              # [j, i]
             for i in range(2, 6):
                 r = nn.relu(nn.Dense(C, name=f"relation_{i}", dtype=dt)(r))   # [j, k]
