@@ -50,12 +50,14 @@ class LoadedPolicy:
 
 def load_policy(policy: str | None = None, run_dir: str | None = None,
                 tpn_dir: str | None = None, release_checkpoint: str | None = None,
-                release_kind: str = "GraphModel", **test_time) -> LoadedPolicy:
+                release_kind: str = "GraphModel", savn_act: str | None = None,
+                **test_time) -> LoadedPolicy:
     """One of: a named policy ('random', 'expert'), a training run's best-on-val model
     (run_dir), a stage-2 run (tpn_dir: its base with TPN's test-time updates;
     test_time overrides tpn.config.TEST_TIME_FIELDS), or a checkpoint of the authors'
     release (release_checkpoint, of release_kind: models/release.py; greedy, on the
-    scenes the caller names, whose feature widths must be the checkpoint's)."""
+    scenes the caller names, whose feature widths must be the checkpoint's). savn_act
+    ("greedy" | "sample") overrides a SAVN run's test-time actions."""
     from orgnav_jax import evaluation
     if sum(x is not None for x in (policy, run_dir, tpn_dir, release_checkpoint)) > 1:
         raise UserError("give one of a policy name, a run directory, a TPN run directory or "
@@ -64,6 +66,8 @@ def load_policy(policy: str | None = None, run_dir: str | None = None,
         from orgnav_jax.tpn.config import TEST_TIME_FIELDS
         options = ", ".join("--" + f.replace("_", "-") for f in TEST_TIME_FIELDS)
         raise UserError(f"test-time TPN options ({options}) need --tpn TPN_RUN_DIR")
+    if savn_act is not None and run_dir is None:
+        raise UserError("--savn-act needs --checkpoint RUN_DIR of a SAVN or D-SAVN run")
     if tpn_dir is not None:
         from orgnav_jax.tpn.test_time import default_batch_size, load_tpn_policy
         pol, params, run_cfg, tpn_cfg = load_tpn_policy(tpn_dir, **test_time)
@@ -72,7 +76,7 @@ def load_policy(policy: str | None = None, run_dir: str | None = None,
                             default_batch_size(params["base"], tpn_cfg), from_run=True)
     if run_dir is not None:
         from orgnav_jax.training.runs import load_run_policy
-        pol, params, run_cfg = load_run_policy(run_dir)
+        pol, params, run_cfg = load_run_policy(run_dir, savn_act=savn_act)
         return LoadedPolicy(pol, params, Path(run_dir).name, run_cfg.scene_preset,
                             run_cfg.scenes_dir, run_cfg.scene_seed, from_run=True)
     if release_checkpoint is not None:
@@ -186,16 +190,21 @@ def evaluate_policy(policy: str = "random", split: str = "test", scene_preset: s
     return evaluate(loaded, split, **kw)
 
 
-def load_run(run_dir: str | Path, **test_time) -> LoadedPolicy:
-    """The policy of a run directory: a training run's best-on-val model, or a stage-2
-    run's base with TPN's test-time updates (test_time: TEST_TIME_FIELDS overrides)."""
+def load_run(run_dir: str | Path, savn_act: str | None = None, **test_time) -> LoadedPolicy:
+    """The policy of a run directory: a training run's best-on-val model (savn_act
+    overrides a SAVN run's test-time actions), or a stage-2 run's base with TPN's
+    test-time updates (test_time: TEST_TIME_FIELDS overrides)."""
     config = Path(run_dir) / "config.json"
     try:
         stage = json.loads(config.read_text()).get("stage", "nav")
     except (OSError, ValueError, AttributeError, RecursionError):
         stage = "nav"                    # load_config names what is wrong
-    return (load_policy(tpn_dir=str(run_dir), **test_time) if stage == "tpn"
-            else load_policy(run_dir=str(run_dir), **test_time))
+    if stage == "tpn":
+        if savn_act is not None:
+            raise UserError(f"--savn-act: {run_dir} is a TPN run: expected a SAVN or "
+                            "D-SAVN run directory")
+        return load_policy(tpn_dir=str(run_dir), **test_time)
+    return load_policy(run_dir=str(run_dir), savn_act=savn_act, **test_time)
 
 
 def evaluate_run(run_dir: str | Path, split: str = "test", **kw) -> dict:
@@ -203,7 +212,8 @@ def evaluate_run(run_dir: str | Path, split: str = "test", **kw) -> dict:
     for a TPN run)."""
     from orgnav_jax.tpn.config import TEST_TIME_FIELDS
     test_time = {k: kw.pop(k) for k in list(kw) if k in TEST_TIME_FIELDS}
-    return evaluate(load_run(run_dir, **test_time), split, **kw)
+    return evaluate(load_run(run_dir, savn_act=kw.pop("savn_act", None), **test_time),
+                    split, **kw)
 
 
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:

@@ -5,6 +5,7 @@
     python -m orgnav_jax.evaluate --episodes runs/eval/episodes-small-test.json ...
     python -m orgnav_jax.evaluate --checkpoint runs/small --split test
     python -m orgnav_jax.evaluate --tpn runs/small/tpn --when all   # TPN-all
+    python -m orgnav_jax.evaluate --checkpoint runs/dsavn --split val --savn-act sample
     python -m orgnav_jax.evaluate --release-checkpoint model.dat --release-kind GraphModel \
         --scenes data/offline_import --split test     # the authors' trained weights
 
@@ -77,6 +78,8 @@ def parser() -> argparse.ArgumentParser:
                     help="episodes per jitted batch (default 1000; with --tpn as many as "
                          "the per-episode fast weights allow, up to 1000)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    ap.add_argument("--savn-act", choices=("greedy", "sample"), default=None,
+                    help="a SAVN run's test-time actions (default: its config's savn_act)")
     ap.add_argument("--per-target", action="store_true",
                     help="also print success and SPL per target category")
     from orgnav_jax.tpn.config import TEST_TIME_FIELDS, add_tpn_arguments
@@ -94,7 +97,8 @@ def main(argv: list[str] | None = None) -> dict:
     from orgnav_jax.tpn.config import tpn_overrides_from_args
     loaded = api.load_policy(policy=args.policy, run_dir=args.checkpoint, tpn_dir=args.tpn,
                              release_checkpoint=args.release_checkpoint,
-                             release_kind=args.release_kind, **tpn_overrides_from_args(args))
+                             release_kind=args.release_kind, savn_act=args.savn_act,
+                             **tpn_overrides_from_args(args))
     if not (args.checkpoint or args.tpn):
         loaded.scene_preset = args.preset
     result = api.evaluate(loaded, args.split, scenes_dir=args.scenes, episodes=args.episodes,

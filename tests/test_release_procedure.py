@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -150,3 +151,57 @@ def test_savn_act_is_a_checked_option():
     assert get_config("savn", savn_act="sample").savn_act == "sample"
     with pytest.raises(ValueError, match="config field 'savn_act': 'argmax'"):
         get_config("savn", savn_act="argmax")
+
+
+def test_optim_release_sums_the_loss_over_each_episodes_steps(monkeypatch):
+    """`--optim release`: the A2C + IL loss is summed over the steps of the rollout (the
+    release's per-episode sum) and averaged over the environments, i.e. T x ours (a mean
+    over all T x N steps), computed here term by term from the same logits and values."""
+    from orgnav_jax.training import losses
+    T, N = 5, 3
+    rng = np.random.default_rng(0)
+    logits = jnp.asarray(rng.standard_normal((T, N, 6)), jnp.float32)
+    values = jnp.asarray(rng.standard_normal((T, N)), jnp.float32)
+    monkeypatch.setattr(losses, "replay", lambda *a, **k: (logits, values))
+    traj = SimpleNamespace(action=jnp.asarray(rng.integers(0, 6, (T, N))),
+                           expert_action=jnp.asarray(rng.integers(0, 6, (T, N))),
+                           fresh=jnp.zeros((T, N), bool))
+    adv = jnp.asarray(rng.standard_normal((T, N)), jnp.float32)
+    ret = jnp.asarray(rng.standard_normal((T, N)), jnp.float32)
+    ours = get_config("baseline", il="all")
+    release = dataclasses.replace(ours, optim="release")
+    loss_ours, _ = losses.a2c_loss(None, None, None, traj, None, adv, ret, ours)
+    loss_release, _ = losses.a2c_loss(None, None, None, traj, None, adv, ret, release)
+    logp = np.asarray(jax.nn.log_softmax(logits), np.float64)
+    p = np.exp(logp)
+    pick = lambda a: np.take_along_axis(logp, np.asarray(a)[..., None], -1)[..., 0]
+    per_step = (-np.asarray(adv) * pick(traj.action)
+                + ours.value_coef * 0.5 * (np.asarray(ret) - np.asarray(values)) ** 2
+                + ours.entropy_coef * (p * logp).sum(-1)
+                - ours.il_weight * pick(traj.expert_action))        # (T, N)
+    assert np.isclose(float(loss_release), per_step.sum(0).mean(), rtol=1e-5)
+    assert np.isclose(float(loss_ours), per_step.mean(), rtol=1e-5)
+
+
+def test_evaluate_savn_act_overrides_a_savn_runs_test_time_actions(monkeypatch, capsys):
+    """`evaluate --savn-act sample|greedy` (api.load_policy(savn_act=...)) sets a SAVN
+    run's test-time actions; on a run without SAVN, or without a run, it is one line."""
+    from orgnav_jax import api
+    from orgnav_jax.errors import UserError, run_cli
+    from orgnav_jax.evaluate import main
+    from orgnav_jax.training import runs, savn
+    cfg = {"cfg": get_config("dsavn")}
+    monkeypatch.setattr(runs, "load_run_model", lambda run_dir, best=True: (None, {}, cfg["cfg"]))
+    monkeypatch.setattr(runs, "scenes_for", lambda c: None)
+    seen = []
+    monkeypatch.setattr(savn, "run_policy", lambda c, model, scenes: seen.append(c.savn_act)
+                        or SimpleNamespace(name=c.savn_act))
+    assert api.load_policy(run_dir="r").policy.name == "greedy"           # the run's own
+    assert api.load_policy(run_dir="r", savn_act="sample").policy.name == "sample"
+    assert seen == ["greedy", "sample"]
+    cfg["cfg"] = get_config("baseline")
+    with pytest.raises(UserError, match="--savn-act: r is a baseline run without SAVN"):
+        api.load_policy(run_dir="r", savn_act="sample")
+    assert run_cli(main, ["--policy", "random", "--savn-act", "sample", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--savn-act needs --checkpoint" in err[0]

@@ -3,6 +3,7 @@ model and params (load_run_model), and the model as a greedy evaluation Policy."
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import jax
@@ -145,9 +146,19 @@ def load_run_model(run_dir: str | Path, best: bool = True):
     return model, params, cfg
 
 
-def load_run_policy(run_dir: str | Path, best: bool = True):
-    """-> (Policy, params, config) of a training run (see load_run_model)."""
+def load_run_policy(run_dir: str | Path, best: bool = True, savn_act: str | None = None):
+    """-> (Policy, params, config) of a training run (see load_run_model). savn_act
+    ("greedy" | "sample") overrides a SAVN run's test-time actions (config.savn_act)."""
     model, params, cfg = load_run_model(run_dir, best)
+    if savn_act is not None:
+        from orgnav_jax.errors import UserError
+        from orgnav_jax.training.config import SAVN_ACTS
+        if not cfg.savn:
+            raise UserError(f"--savn-act: {run_dir} is a {cfg.model} run without SAVN: "
+                            "expected a SAVN or D-SAVN run directory")
+        if savn_act not in SAVN_ACTS:
+            raise UserError(f"--savn-act {savn_act!r}: expected one of {list(SAVN_ACTS)}")
+        cfg = dataclasses.replace(cfg, savn_act=savn_act)
     if cfg.savn:       # with SAVN's test-time inner steps (training/savn.py)
         from orgnav_jax.training import savn
         return savn.run_policy(cfg, model, scenes_for(cfg)), params, cfg
