@@ -2,8 +2,11 @@
 20 M env steps (seeds 0-2) and their TPNs re-trained, against the same seeds at 5 M.
 
     python experiments/run_table.py --spec experiments/tables/table_20m.json
-    python experiments/budget_20m.py            # writes experiments/results/table_20m/budget.md
+    python experiments/budget_20m.py            # writes table_20m/budget.md
     python experiments/budget_20m.py --check    # recompute it; exit 1 on a difference
+
+Both tables (SHORT, LONG) were made before network parity (issue 39) and are kept in
+experiments/results/before_parity/ (docs/results.md, "Before parity").
 
 budget.md has three tables, all from the runs' files (claims.read_table_dir: every
 results JSON checked against its per-episode outcomes; metrics.jsonl for the curves):
@@ -16,7 +19,7 @@ results JSON checked against its per-episode outcomes; metrics.jsonl for the cur
   has flattened when that change is small and its interval includes 0);
 - the learned adjacency's anchor statistic (knob.py) of the ORG and ORG + IL runs at 5 M
   (the table's runs retrained bit for bit: rerun_org_5m, rerun_org_il_5m) and at 20 M
-  (`python experiments/knob.py --adjacency experiments/results/table_20m/runs/org*-s*`
+  (`python experiments/knob.py --adjacency experiments/results/before_parity/table_20m/runs/org*-s*`
   writes each run's adjacency.json from its best-on-val checkpoint).
 """
 
@@ -35,7 +38,9 @@ import claims  # noqa: E402  (sibling script: the paired statistics, reading a t
 import knob  # noqa: E402  (sibling script: the adjacency reports)
 from orgnav_jax.errors import run_cli  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
+# Both tables were made before network parity (issue 39) and are kept in
+# results/before_parity (docs/results.md, "Before parity").
+RESULTS = Path(__file__).resolve().parent / "results" / "before_parity"
 SHORT, LONG = RESULTS / "table_5m", RESULTS / "table_20m"
 MILESTONES = (5_000_000, 10_000_000, 15_000_000, 20_000_000)
 NAV_ROWS = ("baseline", "org", "org_il")

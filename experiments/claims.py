@@ -3,6 +3,8 @@ intervals, a one-sided paired test and a three-level verdict.
 
     python experiments/claims.py experiments/results/table_5m            # writes claims.md
     python experiments/claims.py --check experiments/results/table_5m    # recompute all
+    python experiments/claims.py --check experiments/results/before_parity/table_5m
+                                             # the table made before network parity
 
 TABLE is a run_table.py output directory (spec.json, runs/, results.json, table.md). The
 results are read from the runs' own files (OUT/runs/<row>-s<seed>/test_results.json,

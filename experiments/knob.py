@@ -2,7 +2,7 @@
 the generator puts an anchored object by its anchor (P)?
 
     python experiments/knob.py --adjacency DIR/runs/org-s0 ...   # from checkpoints
-    python experiments/knob.py                  # writes experiments/results/knob/
+    python experiments/knob.py                  # writes experiments/results/before_parity/knob/
     python experiments/knob.py --check          # recompute knob.md; exit 1 on a difference
 
 The points (POINTS): P = 0 and P = 1 are run_table.py outputs of their own
@@ -38,10 +38,12 @@ import claims  # noqa: E402  (sibling script: the paired statistics, reading a t
 from orgnav_jax.constants import NUM_CATEGORIES  # noqa: E402
 from orgnav_jax.errors import read_field, read_json, read_object, run_cli  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
+# The knob was measured before network parity (issue 39): its points and the 5 M table
+# it compares with are kept in results/before_parity (docs/results.md, "Before parity").
+RESULTS = Path(__file__).resolve().parent / "results" / "before_parity"
 OUT = RESULTS / "knob"
 # (P, the table directory of its Baseline and ORG runs, the directory whose ORG runs
-# carry the adjacency.json of that P)
+# carry the adjacency.json of that P; both under RESULTS, named so in knob.md)
 POINTS = ((0.0, "knob_p0", "knob_p0"), (0.85, "table_5m", "rerun_org_5m"),
           (1.0, "knob_p1", "knob_p1"))
 SEEDS = ("0", "1", "2")            # the knob's seeds; at 0.85 the table's seeds 0-2

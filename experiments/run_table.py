@@ -12,6 +12,9 @@ definition; it is copied to OUT/spec.json, which claims.py reads. Without --spec
     python experiments/run_table.py --rows baseline baseline+tpn org_il org_il+tpn \\
         org_il+tpn_all org_il+tpn_random --out experiments/results/table2
 
+(The first made docs/results_1m.md's 1 M table before network parity; that table is kept
+in experiments/results/before_parity/tables.)
+
 Each (row, seed) trains in OUT/runs/<row>-s<seed> (skipped when its test results exist,
 resumed when it has checkpoints: rerun the same command after an interruption), is
 evaluated on the test split (best-on-val checkpoint, 250 episodes per room type), and

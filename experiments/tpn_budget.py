@@ -1,7 +1,12 @@
 """The TPN's stage-2 budget on val (issue 24): does a larger budget make the TPN help?
 
-    python experiments/tpn_budget.py --out experiments/results/tpn_budget \\
+    python experiments/tpn_budget.py --out experiments/results/before_parity/tpn_budget \\
         --bases baseline org_il --seed 100 --budgets 40000 400000 --lrs 1e-4 1e-3 1e-2
+    python experiments/tpn_budget.py --out experiments/results/before_parity/tpn_budget --check
+
+The committed sweep was made before network parity (issue 39) and is kept in
+experiments/results/before_parity/tpn_budget (the default OUT; docs/results.md, "Before
+parity"); a sweep on the current networks takes an --out of its own.
 
 For each base row: its navigation run (5 M env steps, dropout 0: the table's config) in
 OUT/runs/<base>-s<seed>; for each budget a TPN trained on it for that many stage-2
@@ -152,7 +157,8 @@ def check(out: Path) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=Path, default=Path("experiments/results/tpn_budget"))
+    ap.add_argument("--out", type=Path,
+                    default=Path("experiments/results/before_parity/tpn_budget"))
     ap.add_argument("--bases", nargs="+", default=["baseline", "org_il"])
     ap.add_argument("--seed", type=int, default=100)
     ap.add_argument("--budgets", type=int, nargs="+", default=[40_000, 400_000])

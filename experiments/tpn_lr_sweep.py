@@ -1,7 +1,8 @@
 """Choose TPN's test-time learning rate on the val split (never on test).
 
-    python experiments/tpn_lr_sweep.py experiments/results/tables/runs/baseline-s0/tpn \\
-        --lrs 1e-4 1e-3 1e-2 1e-1 1 --out experiments/results/tables/lr_sweep_baseline_s0.json
+    python experiments/tpn_lr_sweep.py experiments/results/before_parity/tables/runs/baseline-s0/tpn \\
+        --lrs 1e-4 1e-3 1e-2 1e-1 1 \\
+        --out experiments/results/before_parity/tables/lr_sweep_baseline_s0.json
 
 Evaluates the TPN run's base model with test-time updates at each learning rate (and the
 base alone, lr 0) on the val episodes (250 per room type) and writes a JSON of the

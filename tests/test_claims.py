@@ -166,10 +166,15 @@ def test_provenance_counts_code_changes_not_the_tables_own_files(tmp_path):
 
 def test_committed_tables_agree_with_their_runs(claims):
     """`claims.py --check` on every committed run_table.py output (the tables and the
-    knob's points): its results.json, table.md and claims.md are what its runs'
-    evidence files give."""
-    tables = sorted(p.parent for p in (EXPERIMENTS / "results").glob("*/spec.json"))
+    knob's points, those made before network parity in results/before_parity too): its
+    results.json, table.md and claims.md are what its runs' evidence files give."""
+    results = EXPERIMENTS / "results"
+    tables = sorted(p.parent for pattern in ("*/spec.json", "before_parity/*/spec.json")
+                    for p in results.glob(pattern))
     assert any(t.name.startswith("table_") for t in tables), "no committed table"
+    before = {t.name for t in tables if t.parent.name == "before_parity"}
+    assert before >= {"table_5m", "table_20m", "knob_p0", "knob_p1", "rerun_org_5m",
+                      "rerun_org_il_5m"}, before
     for table in tables:
         assert claims.check(table) == [], table
 
@@ -188,8 +193,8 @@ def test_the_knob_tables_agree_with_their_runs(claims, tmp_path):
     table_runs = knob.table_adjacency()          # every ORG and ORG + IL run of the table
     assert {row: sorted(r) for row, r in table_runs.items()} == \
         {"org": list("01234"), "org_il": list("01234")}
-    adj = next(iter(sorted((EXPERIMENTS / "results").glob(
-        "*/runs/org-s*/adjacency.json"))))
+    assert knob.RESULTS == EXPERIMENTS / "results" / "before_parity"
+    adj = next(iter(sorted(knob.RESULTS.glob("*/runs/org-s*/adjacency.json"))))
     doc = json.loads(adj.read_text())
     doc["A"][0][1] += 1.0
     bad = tmp_path / "adjacency.json"
@@ -216,7 +221,7 @@ def test_tpn_budget_gain_is_paired_by_episode_and_tabled(tmp_path):
                   "chosen": 1e-3, "gain": (mean, low, high)}}}}}
     line = budget.table(summary).splitlines()[2]
     assert line.startswith("| baseline | 40,000 | 1.000 | 50.0 | 60.0 | 70.0 | 65.0 | 0.001 |")
-    committed = EXPERIMENTS / "results" / "tpn_budget"         # the sweep's own files
+    committed = EXPERIMENTS / "results" / "before_parity" / "tpn_budget"  # the sweep's files
     assert budget.main(["--out", str(committed), "--check"]) == 0
     copy = tmp_path / "tpn_budget"                             # a tampered summary is named
     shutil.copytree(committed, copy)
@@ -235,6 +240,8 @@ def test_the_20m_comparison_agrees_with_its_runs(tmp_path):
     spec = importlib.util.spec_from_file_location("budget_20m", EXPERIMENTS / "budget_20m.py")
     budget = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(budget)
+    assert (budget.SHORT, budget.LONG) == tuple(
+        EXPERIMENTS / "results" / "before_parity" / t for t in ("table_5m", "table_20m"))
     assert budget.main(["--check"]) == 0
     run = budget.LONG / "runs" / "org-s0"
     vals = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()

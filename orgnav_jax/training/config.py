@@ -273,9 +273,10 @@ class Budget:
 BUDGETS: dict[str, Budget] = {
     # The paper: 6 M training episodes (12 A3C workers), then 2 M episodes for the TPN.
     # Episode length: env steps per finished episode over whole 5 M-step runs of the small
-    # benchmark's table (experiments/results/table_5m, 14 runs of baseline / IL / ORG /
-    # ORG+IL / IL-all / IL-failed, 3 seeds): 15.3-16.7, mean 16.2 (early episodes are
-    # short: the untrained policy says Done at random; the 30-step cap bounds it).
+    # benchmark's table made before parity (experiments/results/before_parity/table_5m, 14
+    # runs of baseline / IL / ORG / ORG+IL / IL-all / IL-failed, 3 seeds): 15.3-16.7, mean
+    # 16.2 (early episodes are short: the untrained policy says Done at random; the
+    # 30-step cap bounds it).
     "paper": Budget(episodes=6_000_000, steps_per_episode=16, tpn_episodes=2_000_000,
                     source="the mean training episode length of 5 M-step runs on the "
                            "small benchmark, 15.3-16.7; the 30-step cap would give 180 M"),
