@@ -142,7 +142,7 @@ def test_configs_before_version_5_read_max_steps_as_episode_cap(tmp_path, versio
         (run / "config.json").write_text(json.dumps({"version": version, "stage": stage,
                                                      **doc}))
         assert load(run).episode_cap == cfg.episode_cap
-        assert json.loads(cfg.to_json())["version"] == CONFIG_VERSION == 7
+        assert json.loads(cfg.to_json())["version"] == CONFIG_VERSION == 8
         assert "max_steps" not in json.loads(cfg.to_json())
         doc["version"] = 5               # a version-5 config with the old name is refused
         (run / "config.json").write_text(json.dumps({"stage": stage, **doc}))

@@ -225,10 +225,78 @@ def test_the_chunk_compiles_once(rooms):
     assert chunk._cache_size() == 1
     assert loop.cached_savn_chunk(loop.compute_config(cfg), model)[2] is chunk
     assert bool(metrics["loss_finite"]) and int(runner.update) == 6
-    assert float(metrics["episodes"]) == 2 * cfg.num_envs        # whole episodes
-    assert 0 < float(metrics["env_steps_real"]) <= 2 * cfg.num_envs * cfg.episode_cap
+    # rows refilled at segment boundaries: more episodes end than there are rows
+    assert float(metrics["episodes"]) > cfg.num_envs
+    assert 0 < float(metrics["env_steps_real"]) <= 2 * cfg.steps_per_update
     assert any(not np.allclose(a, b) for a, b in zip(before,
                                                      jax.tree_util.tree_leaves(runner.params)))
+
+
+REFILL = dict(num_envs=6, savn_segments=6, savn_inner_lr=3.0)
+
+
+def test_a_refilled_row_starts_a_new_episode_with_the_meta_weights(rooms):
+    """At the segment boundary after a row's episode ended, the row starts a new episode
+    with the meta-parameters (no slot of the last episode's inner steps left), a zero LSTM
+    carry and no inner step taken; the new episode acts as the plain model of the
+    meta-parameters would (nothing of the last episode leaks into it), and it takes its
+    own inner steps. Episodes still running at the update's end go on in the next update
+    with their carry, env state, inner-step count and fast weights as offsets over the
+    new meta-parameters."""
+    cfg, model, learned, meta = setup(rooms, **REFILL)
+    meta = dict(meta, ll=jax.tree_util.tree_map(lambda x: 30 * x, meta["ll"]))
+    rows = savn.init_rows(cfg, model, meta["nav"], rooms, jax.random.PRNGKey(3))
+    loss = jax.jit(lambda m, r, key: savn.savn_loss(m, r, model, learned, cfg, rooms, key,
+                                                    trace=True))
+    _, (aux, stats, rows1) = loss(meta, rows, jax.random.PRNGKey(4))
+    tr = jax.tree_util.tree_map(np.asarray, aux["trace"])
+    nav = meta["nav"]
+    leaves = lambda t, r: [np.asarray(x[r]) for x in jax.tree_util.tree_leaves(t)]
+    trained = [np.asarray(x) for x in jax.tree_util.tree_leaves(nav)]
+    plain = jax.jit(lambda x: reference_segment(model, nav, one_row_carry(model), x)[1][0])
+    assert tr["new"][0].all()                          # every row starts at the first
+    checked = 0
+    for s in range(1, cfg.savn_segments):
+        for r in np.flatnonzero(tr["new"][s]):
+            if tr["updates"][s - 1, r] == 0:         # the last episode took no inner step
+                continue
+            checked += 1
+            before = savn.materialize(nav, jax.tree_util.tree_map(lambda x: x[s - 1], tr[
+                "fast"]))
+            assert not all(np.allclose(a, b) for a, b in zip(leaves(before, r), trained))
+            after = savn.materialize(nav, jax.tree_util.tree_map(lambda x: x[s], tr["fast"]))
+            assert all(np.array_equal(a, b) for a, b in zip(leaves(after, r), trained))
+            assert all((x[s, r] == 0).all() for x in jax.tree_util.tree_leaves(tr["lstm"]))
+            assert tr["updates"][s, r] == 0
+            want = plain(jax.tree_util.tree_map(lambda x: x[s, r], tr["inputs"]))
+            np.testing.assert_allclose(tr["logits"][s][:, r], want, rtol=1e-5, atol=1e-6)
+    assert checked >= 2, checked
+    # a refilled episode that runs on takes its own first inner step after its segment
+    U, N = cfg.savn_segments, cfg.num_envs
+    assert any(tr["new"][s, r] and not tr["new"][s + 1, r] and tr["updates"][s + 1, r] == 1
+               for s in range(1, U - 1) for r in range(N))
+    assert float(stats.count) >= cfg.num_envs
+    # an episode running at the update's end goes on in the next update
+    going = np.flatnonzero(np.asarray(rows1.running) & (np.asarray(rows1.updates) > 0))
+    assert going.size
+    nav2 = jax.tree_util.tree_map(lambda x: x + 0.01, nav)
+    _, (aux2, _, _) = loss(dict(meta, nav=nav2), rows1, jax.random.PRNGKey(5))
+    tr2 = jax.tree_util.tree_map(np.asarray, aux2["trace"])
+    first = lambda t: jax.tree_util.tree_map(lambda x: x[0], t)
+    for r in going:
+        assert not tr2["new"][0, r] and tr2["updates"][0, r] == rows1.updates[r]
+        assert all(np.array_equal(a[0, r], b[r]) for a, b in zip(
+            jax.tree_util.tree_leaves(tr2["lstm"]), jax.tree_util.tree_leaves(rows1.lstm)))
+        # its fast weights: the new meta-parameters plus what its inner steps changed
+        moved2 = [a - b for a, b in zip(leaves(savn.materialize(nav2, first(tr2["fast"])),
+                                               r),
+                                        [np.asarray(x) for x in
+                                         jax.tree_util.tree_leaves(nav2)])]
+        moved1 = [a - b for a, b in zip(leaves(savn.materialize(
+            nav, savn.fast_over(nav, rows1.delta)), r), trained)]
+        for a, b in zip(moved2, moved1):
+            np.testing.assert_allclose(a, b, atol=1e-5)
+        assert any(np.abs(b).max() > 0 for b in moved1)
 
 
 def test_dsavn_preset_trains_and_evaluates_from_the_cli(tiny_dir, tmp_path):
@@ -256,7 +324,7 @@ def test_dsavn_preset_trains_and_evaluates_from_the_cli(tiny_dir, tmp_path):
 
     def check_counts(train, budget):
         real = [r["env_steps_real"] for r in train]
-        assert all(0 < x <= 2 * 3 * 8 for x in real)       # 2 updates x 3 episodes x cap 8
+        assert all(0 < x <= 2 * 3 * 5 * 3 for x in real)   # 2 updates x 3 rows x 5 x 3
         assert [r["env_steps"] for r in train] == list(np.cumsum(real).astype(int))
         assert train[-1]["env_steps"] >= budget > (train[-2]["env_steps"] if len(train) > 1
                                                    else 0)
@@ -274,19 +342,48 @@ def test_dsavn_preset_trains_and_evaluates_from_the_cli(tiny_dir, tmp_path):
     assert loaded.savn and set(params) == {"nav", "ll"} and "SAVN" in policy.name
 
 
-def test_resuming_a_savn_run_that_counted_episode_slots_is_refused(tmp_path, capsys):
-    """A SAVN run of config version <= 6 counted every episode at its cap: resuming it
-    under the real-step count is one line, exit 2, before anything is written."""
+@pytest.mark.parametrize("version, says", [(6, "episode slots"),
+                                           (7, "stepped every episode whole")])
+def test_resuming_a_savn_run_of_an_older_meaning_is_refused(tmp_path, capsys, version,
+                                                            says):
+    """A SAVN run of config version <= 6 counted every episode at its cap; one of version
+    7 stepped whole episodes (its checkpoints hold no running episodes): resuming either
+    under the refill is one line, exit 2, before anything is written."""
     from orgnav_jax.errors import run_cli
     from orgnav_jax.train import main
     from orgnav_jax.training.config import get_config
     run = tmp_path / "old"
     run.mkdir()
-    doc = {k: v for k, v in json.loads(get_config("dsavn").to_json()).items()}
-    doc.update(version=6, run_dir=str(run))
+    doc = {k: v for k, v in json.loads(get_config("dsavn").to_json()).items()
+           if k != "savn_segments"}
+    doc.update(version=version, run_dir=str(run))
     (run / "config.json").write_text(json.dumps(doc))
     before = sorted(p.name for p in run.iterdir())
     assert run_cli(main, ["--run-dir", str(run), "--resume", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "episode slots" in err[0] and "config version 6" in err[0]
+    assert len(err) == 1 and says in err[0] and f"config version {version}" in err[0], err
     assert sorted(p.name for p in run.iterdir()) == before
+
+
+def test_a_version_7_savn_run_still_loads_from_its_latest_checkpoint(tiny_dir, tmp_path):
+    """A SAVN run saved before the refill (config version 7) has no rows in its runner:
+    its latest checkpoint (no best one) still gives its parameters for evaluation."""
+    from orgnav_jax.training import runs
+    from orgnav_jax.training.checkpoints import RunCheckpoints
+    from orgnav_jax.training.update import make_optimizer
+    run = tmp_path / "v7"
+    run.mkdir()
+    cfg = get_config("dsavn", scenes_dir=tiny_dir, run_dir=str(run),
+                     **{**SMALL, **TINY_WIDTHS})
+    doc = {k: v for k, v in json.loads(cfg.to_json()).items() if k != "savn_segments"}
+    (run / "config.json").write_text(json.dumps(dict(doc, version=7)))
+    scenes = runs.scenes_for(cfg).split_view("train")
+    model = build_model(cfg, scenes)
+    runner = savn.init_savn_runner(cfg, model, savn.build_learned_loss(), make_optimizer(cfg),
+                                   scenes.to_device(), jax.random.PRNGKey(2))
+    RunCheckpoints(run).save(48, runner.replace(rows=None), {"chunk": 1, "best": {}})
+    _, params, loaded = runs.load_run_model(run, best=False)
+    assert loaded.savn
+    for a, b in zip(jax.tree_util.tree_leaves(params),
+                    jax.tree_util.tree_leaves(runner.params)):
+        np.testing.assert_array_equal(a, b)

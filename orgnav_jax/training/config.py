@@ -38,6 +38,11 @@ V6_DEFAULTS = {"net": "pre_parity", "prev_action": "onehot"}
 # values describe are version 6 and older.)
 V7_DEFAULTS = {"target_input": "onehot_maps", "word_vectors": None, "optim": "ours",
                "savn_act": "greedy"}
+# Fields a version-7 (or older) config lacks, added with config version 8 (issue 40's
+# refill of SAVN's batch rows). Those runs' SAVN updates stepped num_envs whole episodes to
+# the cap (5 segments of 6 steps at the defaults) and their checkpoints hold no running
+# episodes: they evaluate as trained, a resume is refused (training/loop.py).
+V8_DEFAULTS = {"savn_segments": 5}
 # Values whose meaning changed with config version 7 (issue 40), old -> the value that
 # means it now, for the configs of version 6 and older: "dsp" was the D-SP whose graph
 # replaces the detection maps (models/org.py), now "dsp_replace".
@@ -120,12 +125,15 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     devices: int = 0                  # devices per process the env axis is sharded over
                                       # (0: all local devices); a resume may change it
     dtype: DType = "float32"          # bfloat16: bf16 matmuls, float32 parameters
-    # SAVN (training/savn.py, docs/savn.md): whole episodes cut into segments of
-    # savn_steps steps; after each of the first savn_inner_steps segments that did not end
-    # the episode, one SGD step (savn_inner_lr) on the learned loss; MAML meta-gradient
-    # (first order: the inner gradient is a constant)
+    # SAVN (training/savn.py, docs/savn.md): episodes cut into segments of savn_steps
+    # steps; after each of the first savn_inner_steps segments that did not end the
+    # episode, one SGD step (savn_inner_lr) on the learned loss; MAML meta-gradient (first
+    # order: the inner gradient is a constant). An update steps every batch row for
+    # savn_segments segments; a row whose episode ended starts a new one at the next
+    # segment boundary, a running episode goes on in the next update
     savn: bool = False
     savn_steps: int = 6               # k, the release's num_steps
+    savn_segments: int = 5            # segments per update (num_envs x 5 x k env steps)
     savn_inner_lr: float = 1e-4       # the release's inner_lr
     savn_inner_steps: int = 4         # inner steps per episode (the release's gradient_limit)
     savn_first_order: bool = False
@@ -134,10 +142,10 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     @property
     def steps_per_update(self) -> int:
         """Env steps an update counts for the budget. SAVN: the most an update can take
-        (num_envs episodes at their cap); its budget counts the steps the episodes really
-        took (training/loop.py: savn_stage, issue 40)."""
+        (num_envs rows x savn_segments x savn_steps); its budget counts the steps the
+        episodes really took (training/loop.py: savn_stage, issue 40)."""
         if self.savn:
-            return self.num_envs * self.episode_cap
+            return self.num_envs * self.savn_segments * self.savn_steps
         return self.num_envs * self.rollout_len
 
     @property
@@ -191,7 +199,7 @@ FIELD_RANGES: dict[str, Range] = {
     "devices": Range(lo=0, note="0: all local devices"),
     **{f: COUNT for f in ("glob_channels", "action_embed", "fuse_channels", "hidden",
                           "lstm_layers", "num_envs", "rollout_len", "total_env_steps",
-                          "savn_steps", "savn_inner_steps")},
+                          "savn_steps", "savn_inner_steps", "savn_segments")},
     # the env counts steps in int32 and keeps a trail of episode_cap + 1 states per env
     # (the memory check, training/memory.py, bounds it far lower)
     "episode_cap": EPISODE_CAP,
@@ -302,11 +310,13 @@ def load_config(run_dir: str | Path) -> TrainConfig:
     from orgnav_jax.training.run_dir import read_config
     return read_config(run_dir, TrainConfig, "nav", READABLE_VERSIONS,
                        {2: {**V2_DEFAULTS, **V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS,
-                            **V7_DEFAULTS},
-                        3: {**V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS, **V7_DEFAULTS},
-                        4: {**V5_DEFAULTS, **V6_DEFAULTS, **V7_DEFAULTS},
-                        5: {**V5_DEFAULTS, **V6_DEFAULTS, **V7_DEFAULTS},
-                        6: {**V6_DEFAULTS, **V7_DEFAULTS}},
+                            **V7_DEFAULTS, **V8_DEFAULTS},
+                        3: {**V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS, **V7_DEFAULTS,
+                            **V8_DEFAULTS},
+                        4: {**V5_DEFAULTS, **V6_DEFAULTS, **V7_DEFAULTS, **V8_DEFAULTS},
+                        5: {**V5_DEFAULTS, **V6_DEFAULTS, **V7_DEFAULTS, **V8_DEFAULTS},
+                        6: {**V6_DEFAULTS, **V7_DEFAULTS, **V8_DEFAULTS},
+                        7: V8_DEFAULTS},
                        OLD_RENAMES, {v: V6_VALUES for v in (2, 3, 4, 5, 6)})
 
 

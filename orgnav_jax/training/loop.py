@@ -99,13 +99,15 @@ def savn_runner(cfg: TrainConfig, model, train_scenes):
 # The config version from which a SAVN run's budget counts the env steps its episodes
 # really took (issue 40); before, every episode counted at its cap (episode slots).
 SAVN_REAL_STEPS_VERSION = 7
+SAVN_REFILL_VERSION = savn.REFILL_VERSION      # SAVN's updates refill ended rows
 
 
 def check_savn_resume(run_dir) -> None:
     """UserError (one line) when run_dir holds a SAVN run whose config predates
-    SAVN_REAL_STEPS_VERSION: its env_steps count episode slots, not real env steps, so
-    continuing it under the new count would mix the two. Nothing to check without a
-    config.json (a new run)."""
+    SAVN_REAL_STEPS_VERSION (its env_steps count episode slots, not real env steps, so
+    continuing it under the new count would mix the two) or SAVN_REFILL_VERSION (its
+    updates stepped whole episodes and its checkpoints hold no running episodes).
+    Nothing to check without a config.json (a new run)."""
     import json
     path = Path(run_dir) / "config.json"
     try:
@@ -119,19 +121,27 @@ def check_savn_resume(run_dir) -> None:
                         "env_steps count episode slots (every episode at its cap); this "
                         "version counts the env steps the episodes really took (issue 40): "
                         "start a new run, or evaluate this one as it is")
+    if (isinstance(version, int) and version < SAVN_REFILL_VERSION
+            and doc.get("savn") is True):
+        raise UserError(f"--resume {run_dir}: a SAVN run of config version {version}, whose "
+                        "updates stepped every episode whole to its cap; this version "
+                        "refills ended rows at segment boundaries and carries running "
+                        "episodes between updates (issue 40): start a new run, or evaluate "
+                        "this one as it is")
 
 
 def savn_stage(cfg: TrainConfig, model, train_scenes, val_scenes, val_episodes) -> Stage:
-    """Stage 1 in SAVN mode (training/savn.py): updates of num_envs whole episodes with
-    inner steps; val with the test-time inner steps (savn_policy). The budget counts the
-    env steps the episodes really took (the chunk's env_steps_real): the run stops after
-    the first chunk whose running count reaches total_env_steps."""
+    """Stage 1 in SAVN mode (training/savn.py): updates of num_envs rows x savn_segments
+    segments with inner steps, ended rows refilled at segment boundaries; val with the
+    test-time inner steps (savn_policy). The budget counts the env steps the episodes
+    really took (the chunk's env_steps_real): the run stops after the first chunk whose
+    running count reaches total_env_steps."""
     _, learned, chunk = cached_savn_chunk(compute_config(cfg), model)
     policy = savn.run_policy(cfg, model, val_scenes)
     return Stage(
         name=f"train {cfg.model}+savn", unit="step", step_name="env_steps",
         rate_key="steps_per_s",
-        per_chunk=cfg.updates_per_chunk * cfg.num_envs * cfg.episode_cap,
+        per_chunk=cfg.updates_per_chunk * cfg.steps_per_update,
         total=cfg.total_env_steps, steps_key="env_steps_real",
         chunk=lambda runner: chunk(runner, train_scenes), summarize=chunk_summary,
         validate=lambda runner: evaluation.evaluate(

@@ -91,8 +91,8 @@ def chunk_memory_bytes(cfg, scenes, params: int | None = None) -> dict[str, int]
     {"parameters": ..., "trail": ..., "trajectory": ..., "activations": ..., "scenes": ...}.
     `scenes`: the full SceneSet cfg trains on; `params`: the parameter count if known."""
     N, T = cfg.num_envs, cfg.rollout_len
-    if cfg.savn:          # an update runs num_envs whole episodes (training/savn.py)
-        T = cfg.episode_cap
+    if cfg.savn:          # an update steps num_envs rows for savn_segments x savn_steps
+        T = cfg.savn_segments * cfg.savn_steps                   # (training/savn.py)
     P = param_count(cfg, scenes) if params is None else params
     extra = {}
     if cfg.savn:

@@ -110,6 +110,13 @@ def preflight_tpn(cfg, nav_cfg: TrainConfig):
     return scenes
 
 
+def _saved_version(run_dir) -> int:
+    """The config version a run directory was saved with (its config.json was read and
+    checked by load_config before)."""
+    import json
+    return int(json.loads((Path(run_dir) / "config.json").read_text())["version"])
+
+
 def load_run_model(run_dir: str | Path, best: bool = True):
     """-> (NavModel, params, config) of a training run (its best-on-val checkpoint, else
     the latest); its scenes' feature widths must be those the checkpoint was trained on
@@ -132,6 +139,8 @@ def load_run_model(run_dir: str | Path, best: bool = True):
             runner_like = jax.eval_shape(lambda s: savn.init_savn_runner(
                 cfg, model, savn.build_learned_loss(), make_optimizer(cfg), s,
                 jax.random.PRNGKey(0)), train)
+            if _saved_version(run_dir) < savn.REFILL_VERSION:   # its runner has no rows
+                runner_like = runner_like.replace(rows=None)
             params = ckpt.restore(runner_like)[0].params
         return model, params, cfg
     like = init_params(model, jax.random.PRNGKey(0), train)

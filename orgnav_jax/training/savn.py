@@ -46,6 +46,11 @@ from orgnav_jax.training.losses import gae
 from orgnav_jax.training.rollout import EpisodeStats
 from orgnav_jax.tree import tile, where_rows
 
+# The config version from which a SAVN update refills ended rows at segment boundaries
+# and its runner (SavnRunner.rows) carries the running episodes to the next update (issue
+# 40); before, an update stepped num_envs whole episodes to the cap (runner rows None).
+REFILL_VERSION = 8
+
 LSTM0 = ("trunk", "lstm_0")                      # the first LSTM layer's module path
 LOWRANK = {("params",) + LSTM0 + ("input_kernel",): "ux",
            ("params",) + LSTM0 + ("recurrent_kernel",): "uh"}
@@ -81,11 +86,28 @@ class Fast:
 
 
 @struct.dataclass
+class SavnRows:
+    """The episodes in the batch rows between updates (leading axis N; savn_loss). A row
+    whose episode ended starts a new one at the next segment boundary; an episode still
+    running at an update's end goes on in the next update from here, its fast weights
+    kept as offsets over the meta-parameters they were made from (`offsets`: dense
+    fast - meta; the low-rank slots are offsets already), constants for the next update."""
+    env_state: env.EnvState
+    lstm: Any              # the LSTM carry after the update's last step
+    delta: Fast            # fast weights - meta-parameters
+    updates: jax.Array     # (N,) int32 inner steps the running episode has taken
+    ep_return: jax.Array   # (N,) float32 its return so far
+    running: jax.Array     # (N,) bool: an episode is running (else one starts at the
+                           #   next segment boundary)
+
+
+@struct.dataclass
 class SavnRunner:
     params: Any           # {"nav": navigation variables, "ll": learned-loss variables}
     opt_state: Any
     key: jax.Array
     update: jax.Array
+    rows: SavnRows | None = None   # None: the form of runs of config version <= 7
 
 
 def split_params(nav):
@@ -205,11 +227,6 @@ def _v_inner(model, learned, first_order):
                     in_axes=(None, 0, 0, 0, 0, 0, 0, None, None, 0, 0))
 
 
-def segments(cap: int, k: int) -> list[tuple[int, int]]:
-    """[lo, hi) step ranges of the segments of an episode of `cap` steps."""
-    return [(lo, min(lo + k, cap)) for lo in range(0, cap, k)]
-
-
 def check_savn_config(cfg) -> None:
     """SAVN's fields against the episode cap, before a run writes anything: a segment
     must end before the cap for an inner step to happen during training
@@ -236,36 +253,89 @@ def init_meta(model, learned: LearnedLoss, cfg, scenes, key):
                                                              cfg.hidden + 6)))}
 
 
-def savn_loss(meta, model, learned, cfg, scenes, key):
-    """The meta-objective of one update: num_envs whole training episodes with inner steps
-    -> (A2C loss over their valid steps, aux with the episode sums of EpisodeStats)."""
-    N, cap, k = cfg.num_envs, cfg.episode_cap, cfg.savn_steps
-    params_env = env.EnvParams(success_reward=cfg.success_reward,
-                               step_penalty=cfg.step_penalty, step_caps=(cap,) * 4)
-    shared, _ = split_params(meta["nav"])
-    fast = init_fast(meta["nav"], N, cfg.savn_inner_steps * k)
-    k_reset, k_act = jax.random.split(key)
+def fast_over(nav, delta: Fast) -> Fast:
+    """Rows' fast weights from their offsets over the meta-parameters `nav`: dense
+    nav + delta.dense, the low-rank slots as they are (they are offsets already)."""
+    _, dense = split_params(nav)
+    return delta.replace(dense=jax.tree_util.tree_map(lambda p, d: p[None] + d, dense,
+                                                      delta.dense))
+
+
+def offsets(nav, fast: Fast) -> Fast:
+    """The inverse of fast_over: the rows' fast weights as offsets over `nav`."""
+    _, dense = split_params(nav)
+    return fast.replace(dense=jax.tree_util.tree_map(lambda f, p: f - p[None], fast.dense,
+                                                     dense))
+
+
+def init_rows(cfg, model, nav, scenes, key) -> SavnRows:
+    """num_envs rows with no episode running: each starts one at the first segment."""
+    N = cfg.num_envs
     _, state = jax.vmap(env.reset, in_axes=(0, None, None))(
-        jax.random.split(k_reset, N), scenes, params_env)
+        jax.random.split(key, N), scenes, train_env_params(cfg))
+    return SavnRows(state, model.initial_carry(N),
+                    offsets(nav, init_fast(nav, N, cfg.savn_inner_steps * cfg.savn_steps)),
+                    jnp.zeros(N, jnp.int32), jnp.zeros(N, jnp.float32), jnp.zeros(N, bool))
+
+
+def train_env_params(cfg) -> env.EnvParams:
+    cap = cfg.episode_cap
+    return env.EnvParams(success_reward=cfg.success_reward, step_penalty=cfg.step_penalty,
+                         step_caps=(cap,) * 4)
+
+
+def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: bool = False):
+    """The meta-objective of one update: every row stepped for savn_segments segments of
+    k steps, episodes refilled at segment boundaries -> (A2C loss over the valid steps,
+    (aux, EpisodeStats sums of the episodes that ended, the rows for the next update)).
+
+    At each segment's start a row whose episode ended starts a new one: a fresh env
+    episode, a zero LSTM carry and fast weights = the meta-parameters (the new episode's
+    own place in the meta-gradient), no inner step taken. The row acts k steps with its
+    weights (an episode that ends inside the segment leaves the row idle, masked, to the
+    boundary); then, if its episode is still running and has taken fewer than
+    savn_inner_steps inner steps, its fast weights take one SGD step on the segment's
+    learned loss. An episode still running at the update's end is cut there: its value
+    at the next state bootstraps the advantages (as A2C's rollouts), and it goes on in
+    the next update from the returned rows, its fast weights kept as constant offsets
+    over the meta-parameters (stop_gradient: the meta-gradient of its later steps does
+    not reach back through the inner steps taken before the cut).
+    trace: aux["trace"] holds per-segment arrays (leading axis savn_segments) for tests:
+    after the refill, which rows started an episode ("new"), their inner steps taken
+    ("updates"), fast weights ("fast") and LSTM carry ("lstm"); the segment's inputs
+    (N, k, ...), logits (k, N, 6) and valid steps (k, N)."""
+    N, k, U = cfg.num_envs, cfg.savn_steps, cfg.savn_segments
+    params_env = train_env_params(cfg)
+    nav = meta["nav"]
+    shared, _ = split_params(nav)
+    fresh_fast = init_fast(nav, N, cfg.savn_inner_steps * k)
+    v_reset = jax.vmap(env.reset, in_axes=(0, None, None))
     v_step = jax.vmap(env.step_env, in_axes=(0, 0, None, None))
     v_observe = jax.vmap(env.observe, in_axes=(0, None))
     v_segment, v_inner = _v_segment(model), _v_inner(model, learned, cfg.savn_first_order)
-    carry = model.initial_carry(N)
-    running = jnp.ones(N, bool)
-    ep_return = jnp.zeros(N)
-    stats = EpisodeStats.zeros()
     sg = jax.lax.stop_gradient
-    outs, learned_losses = [], []
-    for s, (lo, hi) in enumerate(segments(cap, k)):
-        L = hi - lo
-        f_sg, sh_sg = sg(fast), sg(shared)
+    sh_sg = sg(shared)
+
+    def observe(state, lstm):
+        inputs = model_inputs(scenes, v_observe(state, scenes))
+        return inputs._replace(prev_action=previous_action(model, inputs.prev_action, lstm))
+
+    def segment(c, key):
+        state, lstm, fast, updates, running, ep_return, stats, ll_sum = c
+        k_reset, k_act = jax.random.split(key)
+        # rows whose episode ended start a new one: the meta-parameters, a zero carry
+        new = ~running
+        _, fresh_state = v_reset(jax.random.split(k_reset, N), scenes, params_env)
+        state = where_rows(new, fresh_state, state)
+        lstm = reset_carry(lstm, new)
+        fast = where_rows(new, fresh_fast, fast)
+        updates = jnp.where(new, 0, updates)
+        ep_return = jnp.where(new, 0.0, ep_return)
+        f_sg, lstm_in = sg(fast), lstm
 
         def act(c, key):        # the agent acts with this segment's weights (no gradient)
             state, lstm, running, ep_return, stats = c
-            obs = v_observe(state, scenes)
-            inputs = model_inputs(scenes, obs)
-            inputs = inputs._replace(prev_action=previous_action(model, inputs.prev_action,
-                                                                 lstm))
+            inputs = observe(state, lstm)
             logits, _, _, lstm, _, _ = v_segment(
                 sh_sg, f_sg.dense, f_sg.ux, f_sg.uh, f_sg.v, lstm,
                 jax.tree_util.tree_map(lambda x: x[:, None], inputs),
@@ -286,27 +356,41 @@ def savn_loss(meta, model, learned, cfg, scenes, key):
             out = (inputs, action, reward, ended | ~running, running)
             return (state, lstm, running & ~done, ep_return, stats), out
 
-        (state, _, running_after, ep_return, stats), (inputs, action, reward, done, valid) = \
-            jax.lax.scan(act, (state, sg(carry), running, ep_return, stats),
-                         jax.random.split(jax.random.fold_in(k_act, s), L))
-        rows = jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), inputs)   # (N, L, ..)
-        if s < cfg.savn_inner_steps and hi < cap and L == k:
-            logits, values, carry, ll, dense, ux, uh, v = v_inner(
-                shared, fast.dense, fast.ux, fast.uh, fast.v, carry, rows, meta["ll"],
-                cfg.savn_inner_lr, jnp.full(N, s * k, jnp.int32), running_after)
-            fast = Fast(dense, ux, uh, v)
-            n = jnp.maximum(running_after.sum(), 1)
-            learned_losses.append((ll * running_after).sum() / n)
-        else:
-            logits, values, _, carry, _, _ = v_segment(
-                shared, fast.dense, fast.ux, fast.uh, fast.v, carry, rows,
-                jnp.zeros((N, L, fast.v.shape[-1])))
-        outs.append((jnp.swapaxes(logits, 0, 1), jnp.swapaxes(values, 0, 1), action, reward,
-                     done, valid))
-        running = running_after
-    logits, values, action, reward, done, valid = (jnp.concatenate(x, 0) for x in zip(*outs))
+        (state, _, running, ep_return, stats), (inputs, action, reward, done, valid) = \
+            jax.lax.scan(act, (state, sg(lstm), jnp.ones(N, bool), ep_return, stats),
+                         jax.random.split(k_act, k))
+        seg = jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), inputs)   # (N, k, ..)
+        # the differentiable pass over the segment, and the inner step where it is due
+        on = running & (updates < cfg.savn_inner_steps)
+        logits, values, lstm, ll, dense, ux, uh, v = v_inner(
+            shared, fast.dense, fast.ux, fast.uh, fast.v, lstm, seg, meta["ll"],
+            cfg.savn_inner_lr, jnp.minimum(updates, cfg.savn_inner_steps - 1) * k, on)
+        fast = where_rows(on, Fast(dense, ux, uh, v), fast)
+        out = (jnp.swapaxes(logits, 0, 1), jnp.swapaxes(values, 0, 1), action, reward, done,
+               valid)
+        if trace:
+            out = out + ({"new": new, "inputs": seg, "updates": updates, "fast": f_sg,
+                          "lstm": sg(lstm_in)},)
+        updates = updates + on.astype(jnp.int32)
+        return (state, lstm, fast, updates, running, ep_return, stats,
+                ll_sum + jnp.stack([(ll * on).sum(), on.sum()])), out
+
+    start = (rows.env_state, rows.lstm, fast_over(nav, rows.delta), rows.updates,
+             rows.running, rows.ep_return, EpisodeStats.zeros(), jnp.zeros(2))
+    (state, lstm, fast, updates, running, ep_return, stats, ll_sum), outs = jax.lax.scan(
+        segment, start, jax.random.split(key, U))
+    logits, values, action, reward, done, valid = (
+        x.reshape((U * k,) + x.shape[2:]) for x in outs[:6])          # (T, N, ...)
+    # the bootstrap value of the episodes cut at the update's end (their next state)
+    lstm_sg = sg(lstm)
+    f_sg = sg(fast)
+    _, boot, *_ = v_segment(sh_sg, f_sg.dense, f_sg.ux, f_sg.uh, f_sg.v, lstm_sg,
+                            jax.tree_util.tree_map(lambda x: x[:, None],
+                                                   observe(state, lstm_sg)),
+                            jnp.zeros((N, 1, f_sg.v.shape[-1])))
+    last_value = jnp.where(running, boot[:, 0], 0.0)
     mask = valid.astype(jnp.float32)                 # (T, N)
-    adv, ret = gae(reward, sg(values), done, jnp.zeros(N), cfg.gamma, cfg.gae_lambda)
+    adv, ret = gae(reward, sg(values), done, last_value, cfg.gamma, cfg.gae_lambda)
     steps = jnp.maximum(mask.sum(), 1.0)
     logp_all = jax.nn.log_softmax(logits)
     logp = jnp.take_along_axis(logp_all, action[..., None], -1)[..., 0]
@@ -314,24 +398,29 @@ def savn_loss(meta, model, learned, cfg, scenes, key):
     value_loss = 0.5 * (((ret - values) ** 2) * mask).sum() / steps
     entropy = (-(jnp.exp(logp_all) * logp_all).sum(-1) * mask).sum() / steps
     loss = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
-    if cfg.optim == "release":     # the release sums over an episode's steps (per episode)
+    if cfg.optim == "release":   # the release sums over steps: here per row of the update
         loss = loss * sg(steps) / N
     aux = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
-           "learned_loss": (jnp.mean(jnp.stack(learned_losses)) if learned_losses
-                            else jnp.float32(0)),
+           "learned_loss": ll_sum[0] / jnp.maximum(ll_sum[1], 1.0),
            "env_steps_real": mask.sum()}
-    return loss, (aux, stats)
+    if trace:
+        aux["trace"] = dict(outs[6], logits=outs[0], valid=outs[5])
+    rows = SavnRows(state, lstm_sg, sg(offsets(nav, fast)), updates, ep_return, running)
+    return loss, (aux, stats, rows)
 
 
 def init_savn_runner(cfg, model, learned, optimizer, scenes, key) -> SavnRunner:
     k_params, k_run = jax.random.split(key)
     params = init_meta(model, learned, cfg, scenes, k_params)
-    return SavnRunner(params, optimizer.init(params), k_run, jnp.int32(0))
+    k_run, k_rows = jax.random.split(k_run)
+    return SavnRunner(params, optimizer.init(params), k_run, jnp.int32(0),
+                      init_rows(cfg, model, params["nav"], scenes, k_rows))
 
 
 def make_savn_chunk(cfg, model, learned, optimizer):
     """A jitted (runner, scenes) -> (runner, metrics) of cfg.updates_per_chunk SAVN
-    updates; metrics as training.update's chunk (EpisodeStats sums, loss terms)."""
+    updates; metrics as training.update's chunk (EpisodeStats sums over the episodes that
+    ended, loss terms)."""
     grad_fn = jax.value_and_grad(savn_loss, has_aux=True)
 
     @jax.jit
@@ -339,10 +428,11 @@ def make_savn_chunk(cfg, model, learned, optimizer):
         def one(carry, _):
             runner, stats = carry
             key, k = jax.random.split(runner.key)
-            (loss, (aux, ep)), grads = grad_fn(runner.params, model, learned, cfg, scenes, k)
+            (loss, (aux, ep, rows)), grads = grad_fn(runner.params, runner.rows, model,
+                                                     learned, cfg, scenes, k)
             updates, opt_state = optimizer.update(grads, runner.opt_state, runner.params)
             runner = SavnRunner(optax.apply_updates(runner.params, updates), opt_state, key,
-                                runner.update + 1)
+                                runner.update + 1, rows)
             stats = jax.tree_util.tree_map(jnp.add, stats, ep)
             return (runner, stats), dict(aux, loss=loss, grad_norm=optax.tree.norm(grads))
 
