@@ -118,7 +118,8 @@ def we_encoder(cfg):
         getattr(cfg, "target_input", "word_vector"), "WE target input (target_input)")()
 
 
-# name -> factory(model config, training SceneSet) -> encoder module
+# name -> factory(model config, training SceneSet) -> encoder module (one with a
+# `build_trunk(cfg)` method brings its own trunk: build_model)
 ENCODERS: dict[str, Callable] = {
     "baseline": lambda cfg, scenes: BaselineEncoder(dtype=compute_dtype(cfg)),
     "we": lambda cfg, scenes: we_encoder(cfg),
@@ -130,7 +131,18 @@ ENCODERS: dict[str, Callable] = {
     "dsp": lambda cfg, scenes: dsp_from_scenes(scenes, cfg.hidden, compute_dtype(cfg)),
     # D-SP before issue 40 (config version <= 6 "dsp"): the graph replaces the maps
     "dsp_replace": lambda cfg, scenes: dsp_replace_from_scenes(scenes, compute_dtype(cfg)),
+    # VTNet (issue 43): a transformer encoder over the detections; its own trunk (the
+    # decoder queried by the global map's cells, then the LSTM policy: models/vtnet.py)
+    "vtnet": lambda cfg, scenes: vtnet_encoder(cfg),
 }
+
+
+def vtnet_encoder(cfg):
+    """VTNet's encoder at the config's widths (models/vtnet.py; docs/vtnet.md)."""
+    from orgnav_jax.models.vtnet import VTNetEncoder
+    return VTNetEncoder(dim=cfg.vtnet_dim, heads=cfg.vtnet_heads, ffn=cfg.vtnet_ffn,
+                        layers=cfg.vtnet_encoder_layers, mask=cfg.vtnet_mask,
+                        dtype=compute_dtype(cfg))
 
 
 def build_model(cfg, scenes) -> NavModel:
@@ -139,6 +151,8 @@ def build_model(cfg, scenes) -> NavModel:
     if cfg.model not in ENCODERS:
         raise ValueError(f"unknown model {cfg.model!r}: expected one of {sorted(ENCODERS)}")
     encoder = ENCODERS[cfg.model](cfg, scenes)
+    if hasattr(encoder, "build_trunk"):      # an encoder with a trunk of its own (VTNet)
+        return NavModel(encoder, encoder.build_trunk(cfg), cfg.prev_action)
     trunk = Trunk(glob_channels=cfg.glob_channels, action_embed=cfg.action_embed,
                   fuse_channels=cfg.fuse_channels, hidden=cfg.hidden,
                   lstm_layers=cfg.lstm_layers, dtype=compute_dtype(cfg), form=cfg.net,
@@ -181,6 +195,7 @@ def _init_params(model: NavModel, key: jax.Array, num_categories: int, global_di
 GLOBAL_INPUT = "trunk/global_1x1/kernel"
 APPEARANCE_INPUTS = ("encoder/gcn_0/kernel", "encoder/hidden/kernel", "encoder/to_map/kernel")
 LOCATION_FEATURES = 6
+APPEARANCE_ONLY_INPUT = "encoder/local_0/kernel"    # VTNet's: d rows (the appearance alone)
 
 
 def _path_name(path) -> str:
@@ -200,11 +215,15 @@ def feature_widths(params) -> dict[str, int]:
         if path.endswith(GLOBAL_INPUT) and len(shape) == 2:
             out.setdefault("global_dim", shape[0])
     if "encoder/target_embedding/kernel" not in "|".join(shapes):
-        for name in APPEARANCE_INPUTS:
+        for name, extra in ((n, LOCATION_FEATURES) for n in APPEARANCE_INPUTS):
             rows = [s[0] for p, s in shapes.items() if p.endswith(name) and len(s) == 2]
             if rows:
-                out["appearance_dim"] = rows[0] - LOCATION_FEATURES
+                out["appearance_dim"] = rows[0] - extra
                 break
+        rows = [s[0] for p, s in shapes.items()
+                if p.endswith(APPEARANCE_ONLY_INPUT) and len(s) == 2]
+        if rows and "appearance_dim" not in out:
+            out["appearance_dim"] = rows[0]
     return out
 
 

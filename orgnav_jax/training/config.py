@@ -65,11 +65,14 @@ TargetInput = Literal["word_vector", "onehot_maps"]   # WE / SAVN's target: SAVN
                                          # 41) a one-hot -> 22 learned 7x7 maps
 Optim = Literal["ours", "release"]       # the optimiser and advantage settings (OPTIM)
 SavnAct = Literal["greedy", "sample"]    # SAVN's test-time actions (the release samples)
+VTNetMask = Literal["none", "undetected"]   # VTNet's attention masks: none (the release)
+                                         # or undetected categories dropped from the keys
 DType = Literal["float32", "bfloat16"]   # the compute dtype of matmuls and activations
                                        # (parameters and optimizer state stay float32)
 IL_MODES, IL_STEPS, IL_NORMS = get_args(ILMode), get_args(ILStep), get_args(ILNorm)
 NETS, PREV_ACTIONS = get_args(Net), get_args(PrevAction)
 TARGET_INPUTS, OPTIMS, SAVN_ACTS = get_args(TargetInput), get_args(Optim), get_args(SavnAct)
+VTNET_MASKS = get_args(VTNetMask)
 DTYPES = get_args(DType)
 
 
@@ -98,6 +101,31 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     target_input: TargetInput = "word_vector"
     word_vectors: str | None = None   # a GloVe text file; None: the stand-in (seeded
                                       # random unit vectors, models/word_vectors.py)
+    # VTNet (model "vtnet": models/vtnet.py, docs/vtnet.md; issue 43). The transformer's
+    # width (the release's d_model, 256 at paper widths), heads, FFN width and layers; the
+    # per-cell width is fuse_channels and the LSTM width hidden. Fields added within config
+    # version 8: their defaults are what every earlier run was (no VTNet).
+    vtnet_dim: int = 32               # small widths: docs/vtnet.md (the 1/3 speed target);
+    vtnet_heads: int = 1              # heads of the release's width 32 (256 / 8)
+    vtnet_ffn: int = 64
+    vtnet_encoder_layers: int = 1
+    vtnet_decoder_layers: int = 1
+    vtnet_mask: VTNetMask = "none"
+    # VTNet's pre-training (--stage pretrain: training/pretrain.py): the visual transformer
+    # and a linear head learn the expert's action at random (state, target) pairs of the
+    # training rooms; AdamW, gradient-norm clip, the lr x0.1 every pretrain_lr_drop
+    # samples (0: never). pretrained: a pre-training run whose best-on-val visual
+    # parameters start this run's, trained at pretrained_lr_scale x lr (the release's
+    # pretrained_lr 1e-5 against lr 1e-4)
+    pretrain_samples: int = 1_000_000
+    pretrain_batch: int = 128
+    pretrain_lr: float = 1e-4
+    pretrain_weight_decay: float = 1e-4
+    pretrain_lr_drop: int = 0
+    pretrain_clip: float = 0.1
+    pretrain_val_samples: int = 4096
+    pretrained: str | None = None
+    pretrained_lr_scale: float = 0.1
     # imitation (trial-driven IL): none | deadlock | all | failed (see IL_MODES, IL_STEPS)
     il: ILMode = "none"
     il_weight: float = 1.0
@@ -173,13 +201,14 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
                               ("il_norm", IL_NORMS), ("dtype", DTYPES), ("net", NETS),
                               ("prev_action", PREV_ACTIONS),
                               ("target_input", TARGET_INPUTS), ("optim", OPTIMS),
-                              ("savn_act", SAVN_ACTS)):
+                              ("savn_act", SAVN_ACTS), ("vtnet_mask", VTNET_MASKS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"config field {name!r}: {getattr(self, name)!r}, expected "
                                  f"one of {list(allowed)}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"config field 'dropout' must lie in [0, 1), got {self.dropout}")
         check_ranges(self, FIELD_RANGES, "config field")
+        check_vtnet(self)
         if self.savn:
             for name, ok, want in (("il", self.il == "none", "'none' with savn"),
                                    ("dropout", self.dropout == 0.0, "0 with savn"),
@@ -209,13 +238,44 @@ FIELD_RANGES: dict[str, Range] = {
     "entropy_coef": NON_NEGATIVE, "value_coef": NON_NEGATIVE, "il_weight": NON_NEGATIVE,
     "success_reward": FINITE, "step_penalty": FINITE,
     "savn_inner_lr": Range(lo=0, note="0: no inner update"),
+    **{f: COUNT for f in ("vtnet_dim", "vtnet_heads", "vtnet_ffn", "vtnet_encoder_layers",
+                          "vtnet_decoder_layers", "pretrain_samples", "pretrain_batch",
+                          "pretrain_val_samples")},
+    "pretrain_lr": POSITIVE, "pretrain_clip": POSITIVE,
+    "pretrain_weight_decay": NON_NEGATIVE, "pretrained_lr_scale": NON_NEGATIVE,
+    "pretrain_lr_drop": Range(lo=0, note="0: no drop"),
 }
 
+
+def check_vtnet(cfg: TrainConfig) -> None:
+    """VTNet's fields that go together (ValueError naming the field): the width splits
+    into the heads and into the two halves of the position embedding and is wider than
+    the 7 location features; the release's networks; `pretrained` only with VTNet."""
+    if cfg.pretrained is not None and (cfg.model != "vtnet" or not cfg.pretrained.strip()):
+        raise ValueError(f"config field 'pretrained': {cfg.pretrained!r}, expected a "
+                         "pre-training run directory, with model 'vtnet'")
+    if cfg.model != "vtnet":
+        return
+    for name, ok, want in (
+            ("vtnet_dim", cfg.vtnet_dim % 4 == 0 and cfg.vtnet_dim > 7,
+             "a multiple of 4 above 7 (two sine halves; 7 location features)"),
+            ("vtnet_heads", cfg.vtnet_dim % cfg.vtnet_heads == 0,
+             f"a divisor of vtnet_dim {cfg.vtnet_dim}"),
+            ("net", cfg.net == "release", "'release' with model vtnet")):
+        if not ok:
+            raise ValueError(f"config field {name!r}: {getattr(cfg, name)!r}, expected {want}")
+
+
+# VTNet's transformer at paper widths: the release's defaults (d_model 256, 8 heads, FFN
+# 512, 6 encoder and 6 decoder layers: models/vtnetmodel.py, utils/command_parser.py)
+VTNET_PAPER = dict(vtnet_dim=256, vtnet_heads=8, vtnet_ffn=512, vtnet_encoder_layers=6,
+                   vtnet_decoder_layers=6)
 TRAIN_PRESETS: dict[str, dict] = {
     # Small widths: learns on 2 CPU cores in minutes (the default run).
     "small": {},
     # The paper's widths (512x7x7 ResNet map, 512-d appearance, LSTM 512).
     "paper": dict(scene_preset="paper", glob_channels=64, fuse_channels=64, hidden=512,
+                  **VTNET_PAPER,
                   lr=1e-4, run_dir="runs/paper"),
     # For tests: the tiny scene set, a short budget.
     "tiny": dict(scene_preset="tiny", total_env_steps=400_000, updates_per_chunk=10,
@@ -241,6 +301,14 @@ TABLE_ROWS: dict[str, dict] = {
 TABLE_DROPOUT = 0.0
 TRAIN_PRESETS.update({name: dict(row, dropout=TABLE_DROPOUT, run_dir=f"runs/{name}")
                 for name, row in TABLE_ROWS.items()})
+# VTNet (issue 43; docs/vtnet.md), on the small benchmark with the rows' settings: the
+# release trains it by A3C alone (no IL). `--preset vtnet` pre-trains it first (a run in
+# RUN_DIR-pretrain: train.py), then trains from it; vtnet_scratch has no pre-training.
+# (Not TABLE_ROWS: experiments/run_table.py does not run the pre-training stage.)
+VTNET_PRESETS = {"vtnet": dict(model="vtnet", il="none"),
+                 "vtnet_scratch": dict(model="vtnet", il="none")}
+TRAIN_PRESETS.update({name: dict(row, dropout=TABLE_DROPOUT, run_dir=f"runs/{name}")
+                      for name, row in VTNET_PRESETS.items()})
 
 
 # The optimiser and advantage settings (`--optim`, docs/training.md). "release": the ECCV

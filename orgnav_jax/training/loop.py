@@ -43,12 +43,31 @@ from orgnav_jax.training.update import init_runner, make_optimizer, make_train_c
 HOST_ONLY_FIELDS = ("run_dir", "total_env_steps", "eval_every_chunks",
                     "eval_episodes_per_room_type", "checkpoint_every_chunks",
                     "keep_checkpoints", "seed", "devices",   # devices: the mesh is a key
-                    "scene_preset", "scenes_dir", "scene_seed")
+                    "scene_preset", "scenes_dir", "scene_seed",
+                    # VTNet's pre-training stage (training/pretrain.py)
+                    "pretrain_samples", "pretrain_batch", "pretrain_lr",
+                    "pretrain_weight_decay", "pretrain_lr_drop", "pretrain_clip",
+                    "pretrain_val_samples")
+PRETRAINED = "(a pre-training run)"   # compute_config's `pretrained`: whether, not where
 
 
 def compute_config(cfg: TrainConfig) -> TrainConfig:
-    """cfg without the fields that do not change the jitted computation."""
-    return computation_of(cfg, HOST_ONLY_FIELDS)
+    """cfg without the fields that do not change the jitted computation (`pretrained`:
+    only whether there is one, for the optimiser's pretrained_lr_scale)."""
+    cfg = computation_of(cfg, HOST_ONLY_FIELDS)
+    return cfg if cfg.pretrained is None else dataclasses.replace(cfg, pretrained=PRETRAINED)
+
+
+def start_from_pretrained(cfg: TrainConfig, runner, resume: bool):
+    """The runner with the visual parameters of the pre-training run cfg.pretrained
+    (VTNet: training/pretrain.py), unless a resume continues from a checkpoint (which
+    holds them: the pre-training run is not read again)."""
+    from orgnav_jax.training.checkpoints import RunCheckpoints
+    if cfg.pretrained is None or (resume and RunCheckpoints(cfg.run_dir).latest_step()
+                                  is not None):
+        return runner
+    from orgnav_jax.training.pretrain import load_pretrained
+    return runner.replace(params=load_pretrained(cfg, runner.params))
 
 
 @compiled_once
@@ -162,6 +181,9 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     # config ranges, scenes (their widths those of a resumed run's checkpoints), memory:
     # before anything is written
     scenes = preflight(cfg, resumed=[cfg.run_dir] if resume else [])
+    if not resume:                # VTNet from a pre-training: that run, before any write
+        from orgnav_jax.training.pretrain import check_pretrained
+        check_pretrained(cfg, scenes)
     with scale.open_shared_run_dir(cfg.run_dir, cfg, resume, load_config) as run_dir:
         return _train([cfg], scenes, [run_dir], mesh, resume, progress,
                       stop_after_chunks)[0]
@@ -171,11 +193,14 @@ def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = 
                 stop_after_chunks: int | None = None) -> list[dict]:
     """Train (or resume) cfg with each of `seeds` in one program (a vmapped population
     axis), seed s in seed_run_dir(cfg.run_dir, s) -> one summary per seed. One seed is
-    an ordinary run (in its -s<seed> directory)."""
+    an ordinary run (in its -s<seed> directory). A VTNet starting from pre-training
+    (cfg.pretrained) starts seed s from seed_run_dir(cfg.pretrained, s)."""
     seeds = [int(s) for s in seeds]
     if not seeds or len(set(seeds)) != len(seeds):
         raise UserError(f"--seeds {' '.join(map(str, seeds))}: expected distinct seeds")
-    cfgs = [dataclasses.replace(cfg, seed=s, run_dir=seed_run_dir(cfg.run_dir, s))
+    # a VTNet pre-training per seed: <pretrained>-s<seed>, as the run directories
+    cfgs = [dataclasses.replace(cfg, seed=s, run_dir=seed_run_dir(cfg.run_dir, s),
+                                pretrained=cfg.pretrained and seed_run_dir(cfg.pretrained, s))
             for s in seeds]
     if len(cfgs) == 1:
         return [train(cfgs[0], resume, progress, stop_after_chunks)]
@@ -184,6 +209,10 @@ def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = 
     mesh = scale.make_mesh(cfg.devices)
     scale.check_batch(cfg.num_envs, mesh)
     scenes = preflight(cfgs[0], resumed=[c.run_dir for c in cfgs] if resume else [])
+    if not resume:
+        from orgnav_jax.training.pretrain import check_pretrained
+        for c in cfgs:
+            check_pretrained(c, scenes)
     with contextlib.ExitStack() as stack:
         run_dirs = [stack.enter_context(scale.open_shared_run_dir(c.run_dir, c, resume,
                                                                   load_config))
@@ -211,7 +240,8 @@ def _train(cfgs: list[TrainConfig], scenes, run_dirs: list[Path], mesh, resume: 
                           progress, stop_after_chunks)]
     optimizer, train_chunk = cached_train_chunk(compute_config(cfg), model, mesh,
                                                 population)
-    runners = [init_runner(c, model, optimizer, train_scenes, jax.random.PRNGKey(c.seed))
+    runners = [start_from_pretrained(c, init_runner(c, model, optimizer, train_scenes,
+                                                    jax.random.PRNGKey(c.seed)), resume)
                for c in cfgs]
     if mesh is None:
         chunk_scenes, place = train_scenes, (lambda runner: runner)

@@ -83,6 +83,9 @@ def _step_floats(cfg, scenes) -> int:
     encoder = C * CELLS + 2 * C * C + C * d          # category maps (+ ORG's relations)
     trunk = CELLS * (2 * gc + E + (gc + C + E) + F) + 4 * H
     recur = cfg.lstm_layers * 10 * H + 64 + 2 * A
+    if cfg.model == "vtnet":        # the transformer's activations (models/vtnet.py)
+        from orgnav_jax.models.vtnet import step_floats
+        return inputs + step_floats(cfg, C) + 4 * H + recur
     return inputs + encoder + trunk + recur
 
 

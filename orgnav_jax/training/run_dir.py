@@ -39,12 +39,15 @@ from orgnav_jax.safe_write import write_text_atomic
 CONFIG_FILE = "config.json"
 LOCK_FILE = ".lock"
 METRICS_FILE = "metrics.jsonl"
-BUDGET_FIELDS = ("total_env_steps", "total_episodes")   # a resume may extend these
-LOCATION_FIELDS = ("run_dir", "scenes_dir", "base_dir")  # a resume follows the given ones
+BUDGET_FIELDS = ("total_env_steps", "total_episodes",   # a resume may extend these
+                 "pretrain_samples")
+LOCATION_FIELDS = ("run_dir", "scenes_dir", "base_dir",   # a resume follows the given ones
+                   "pretrained")
 PLACEMENT_FIELDS = ("devices",)   # where a run computes, not what: a resume may change it
 
 
-STAGES = {"nav": "training", "tpn": "TPN (stage 2)"}   # the kinds of run, in words
+STAGES = {"nav": "training", "tpn": "TPN (stage 2)",   # the kinds of run, in words
+          "pretrain": "VTNet pre-training"}
 
 
 def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int, ...],

@@ -34,13 +34,21 @@ def env_params(cfg: TrainConfig) -> env.EnvParams:
 def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
     """Adam with global-norm clipping (optim "ours"); optim "release": AMSGrad (the
     release's SharedAdam), and for SAVN rows no clipping (SAVN's release clips nothing;
-    max_grad_norm is then unused). docs/training.md."""
+    max_grad_norm is then unused). docs/training.md. A run that starts from a VTNet
+    pre-training (cfg.pretrained) steps the pre-trained parameters at pretrained_lr_scale
+    x lr (the release's two parameter groups: an Adam step scaled is Adam at that lr)."""
     if cfg.optim == "release":
         adam = optax.amsgrad(cfg.lr, eps=cfg.adam_eps)
-        return adam if cfg.savn else optax.chain(
+        opt = adam if cfg.savn else optax.chain(
             optax.clip_by_global_norm(cfg.max_grad_norm), adam)
-    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
-                       optax.adam(cfg.lr, eps=cfg.adam_eps))
+    else:
+        opt = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
+                          optax.adam(cfg.lr, eps=cfg.adam_eps))
+    if getattr(cfg, "pretrained", None) is not None and cfg.pretrained_lr_scale != 1.0:
+        from orgnav_jax.models.vtnet import visual_mask
+        opt = optax.chain(opt, optax.masked(optax.scale(cfg.pretrained_lr_scale),
+                                            visual_mask))
+    return opt
 
 
 def init_runner(cfg: TrainConfig, model, optimizer, scenes, key) -> RunnerState:
