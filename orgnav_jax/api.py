@@ -4,6 +4,7 @@
     result = api.evaluate_policy("expert", split="val", scene_preset="tiny")
     summary = api.train(get_config("baseline"))               # stage 1
     summary = api.train_tpn(get_tpn_config(base_dir=RUN))      # stage 2
+    summary = api.pretrain(PretrainConfig.of(get_config("vtnet"), run_dir=PRE))   # VTNet
     result = api.evaluate_run(RUN, split="test")               # stage-1 or TPN run
     summary = api.train_both(get_config("org_il"), tpn_lr=1e-3)
     summaries = api.train_seeds(get_config("baseline"), seeds=(0, 1, 2))   # one program
@@ -229,6 +230,14 @@ def train_seeds(cfg: TrainConfig, seeds, resume: bool = False,
     S in <cfg.run_dir>-sS -> one summary per seed (training/loop.py: train_seeds)."""
     from orgnav_jax.training.loop import train_seeds as train_population
     return train_population(cfg, seeds, resume=resume, progress=progress)
+
+
+def pretrain(cfg, resume: bool = False, progress: bool = True) -> dict:
+    """VTNet's pre-training: train (or resume) the visual transformer of the
+    PretrainConfig cfg in cfg.run_dir -> summary (best val accuracy, samples;
+    training/pretrain.py). A training run starts from it with pretrained=cfg.run_dir."""
+    from orgnav_jax.training.pretrain import pretrain as pretrain_vtnet
+    return pretrain_vtnet(cfg, resume=resume, progress=progress)
 
 
 def train_tpn(cfg, resume: bool = False, progress: bool = True) -> dict:

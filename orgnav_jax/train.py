@@ -5,11 +5,20 @@
     python -m orgnav_jax.train --run-dir runs/small --resume
     python -m orgnav_jax.train --stage tpn --base runs/small   # stage 2: TPN
     python -m orgnav_jax.train --preset full      # ORG + IL, then its TPN: the full model
+    python -m orgnav_jax.train --preset vtnet     # VTNet: pre-training, then A2C from it
+    python -m orgnav_jax.train --stage pretrain --preset vtnet --run-dir runs/vt-pre
 
 With no arguments it builds (or reuses) the small synthetic benchmark, trains the
 Baseline for the default budget, evaluates the best-on-val checkpoint on the test split
 (250 episodes per room type) and prints the Table-1-style row. Every TrainConfig field is
 an option; see --help.
+
+`--preset vtnet` pre-trains VTNet's visual transformer on the expert's actions (a run in
+RUN_DIR-pretrain; per seed RUN_DIR-pretrain-sS), then trains it by A2C from the result
+(docs/vtnet.md); `--stage pretrain` runs the pre-training alone (its options are the
+training options: the pretrain_* fields, the model's widths; default preset vtnet, run
+directory <the preset's>-pretrain), and `--pretrained PRE_RUN_DIR` starts a VTNet run from
+one (with --seeds: PRE_RUN_DIR-sS for seed S).
 
 `--stage tpn --base RUN_DIR` trains the tentative policy network on the frozen model of a
 finished run (stage 2; by default in RUN_DIR/tpn), then evaluates the model with TPN's
@@ -45,8 +54,9 @@ def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
     """The options both stages share."""
     ap = argparse.ArgumentParser(prog=prog, description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--stage", choices=("nav", "tpn"), default=stage,
-                    help="nav: train a navigation model (stage 1); tpn: stage 2 (see above)")
+    ap.add_argument("--stage", choices=STAGES, default=stage,
+                    help="nav: train a navigation model (stage 1); tpn: stage 2; pretrain: "
+                         "VTNet's pre-training (see above)")
     ap.add_argument("--resume", action="store_true",
                     help="continue the run in --run-dir from its latest checkpoint")
     ap.add_argument("--no-test", action="store_true", help="skip the final test evaluation")
@@ -70,13 +80,18 @@ def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
     return ap
 
 
+STAGES = ("nav", "tpn", "pretrain")
 # options that may go with --resume --run-dir alone (the rest come from config.json)
-RESUME_OPTIONS = {"run_dir", "total_env_steps", "scenes_dir", "devices"}
+RESUME_OPTIONS = {"run_dir", "total_env_steps", "scenes_dir", "devices", "pretrained"}
+RESUME_PRETRAIN_OPTIONS = {"run_dir", "pretrain_samples", "scenes_dir", "devices"}
 RESUME_TPN_OPTIONS = {"run_dir", "total_episodes", "base_dir"}
 
 # presets that run both stages: the navigation preset, then its TPN, evaluated with the
 # test-time learning rate chosen on val (tpn.config.TPN_LR; README, Tables 1-2)
 TPN_PIPELINES = {"baseline_tpn": "baseline", "full": "org_il"}
+# presets that pre-train first (VTNet, issue 43) unless --pretrained names a pre-training
+PRETRAIN_PIPELINES = ("vtnet",)
+PRETRAIN_PRESET = "vtnet"     # --stage pretrain's default preset
 DEFAULT_PRESET = "small"      # --preset when none is given (None: a resume keeps the run's)
 
 
@@ -234,6 +249,8 @@ def check_resume_preset(preset: str, cfg) -> None:
     name = TPN_PIPELINES.get(preset, preset)
     want = get_config(name)
     keys = (set(TRAIN_PRESETS[name]) | {"model", "il", "savn"}) - RESUME_OPTIONS
+    if cfg.model != "vtnet":      # VTNet's widths (the paper preset's) mean nothing else
+        keys = {k for k in keys if not k.startswith("vtnet_")}
     differ = sorted(k for k in keys if getattr(cfg, k) != getattr(want, k))
     if differ:
         saved = ", ".join(f"{k} {getattr(cfg, k)!r}" for k in differ)
@@ -262,10 +279,15 @@ def pipeline_tpn_fields(args) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     argv = sys.argv[1:] if argv is None else list(argv)
     stage = argparse.ArgumentParser(add_help=False)
-    stage.add_argument("--stage", choices=("nav", "tpn"), default="nav")
-    if stage.parse_known_args(argv)[0].stage == "tpn":
+    stage.add_argument("--stage", choices=STAGES, default="nav")
+    which = stage.parse_known_args(argv)[0].stage
+    if which == "tpn":
         return main_tpn(argv)
     args = parser().parse_args(argv)
+    if which == "pretrain":
+        return main_pretrain(args)
+    if args.preset in PRETRAIN_PIPELINES and "pretrained" not in overrides_from_args(args):
+        return main_pretrain_pipeline(args)
     pipeline = TPN_PIPELINES.get(args.preset)
     tpn_fields = pipeline_tpn_fields(args) if pipeline else {}      # before any work
     cfg = nav_config(args, processes=start_processes(args))
@@ -286,6 +308,105 @@ def main(argv: list[str] | None = None) -> dict:
             tpn_cfg = get_tpn_config(base_dir=summary["run_dir"], **tpn_fields)
             summary["tpn"] = run_tpn_stage(
                 tpn_cfg, args.resume and is_run_dir(tpn_cfg.run_dir), args)
+    return summaries[0] if args.seeds is None else {"runs": summaries}
+
+
+def pretrain_configs(args, nav=None) -> list:
+    """The PretrainConfigs --stage pretrain (or a pre-training pipeline, of the training
+    config `nav`) runs: one, or one per --seeds seed (RUN_DIR-sS); UserError for options
+    that do not go together."""
+    from orgnav_jax.training.loop import seed_run_dir
+    from orgnav_jax.training.pretrain import PretrainConfig, load_pretrain_config
+    fields = overrides_from_args(args)
+    seeds = args.seeds
+    if seeds is not None and "seed" in fields:
+        raise UserError("--seed and --seeds: give one")
+    if nav is None and args.resume and "run_dir" in fields and \
+            not (set(fields) - RESUME_PRETRAIN_OPTIONS):
+        first = seed_run_dir(fields["run_dir"], seeds[0]) if seeds else fields["run_dir"]
+        saved = load_pretrain_config(first)
+        base, run_dir = dataclasses.replace(saved, run_dir=fields["run_dir"]), fields["run_dir"]
+        base = dataclasses.replace(base, **{k: v for k, v in fields.items() if k != "run_dir"})
+    else:
+        if nav is None:
+            preset = args.preset or PRETRAIN_PRESET
+            if preset not in TRAIN_PRESETS:
+                raise UserError(f"--stage pretrain --preset {preset}: expected a training "
+                                f"preset of model vtnet (e.g. {PRETRAIN_PRESET})")
+            if args.budget:
+                raise UserError("--budget sets the training budgets; pre-training's is "
+                                "--pretrain-samples")
+            run_dir = fields.pop("run_dir", f"{get_config(preset).run_dir}-pretrain")
+            nav = get_config(preset, **fields)
+        else:
+            run_dir = f"{str(nav.run_dir).rstrip('/')}-pretrain"
+        base = nav
+    if seeds is None:
+        return [PretrainConfig.of(base, run_dir=run_dir, pretrained=None)]
+    if len(set(seeds)) != len(seeds):
+        raise UserError(f"--seeds {' '.join(map(str, seeds))}: expected distinct seeds")
+    return [PretrainConfig.of(base, run_dir=seed_run_dir(run_dir, s), seed=s,
+                              pretrained=None) for s in seeds]
+
+
+def run_pretrain(cfgs: list, resume: bool, args) -> list[dict]:
+    """Pre-train each config in turn (resuming the runs that exist when `resume`) ->
+    their summaries (printed as JSON lines)."""
+    out = []
+    for cfg in cfgs:
+        announce(cfg, f"pre-training {cfg.run_dir}: VTNet, {cfg.pretrain_samples:,} samples "
+                      f"in batches of {cfg.pretrain_batch}, seed {cfg.seed}")
+        summary = api.pretrain(cfg, resume=resume and is_run_dir(cfg.run_dir),
+                               progress=not args.quiet)
+        summary.pop("runner")
+        if primary():
+            print(json.dumps(summary, default=str), flush=True)
+        out.append(summary)
+    return out
+
+
+def main_pretrain(args) -> dict:
+    """--stage pretrain: VTNet's pre-training alone (training/pretrain.py)."""
+    if start_processes(args) > 1:
+        raise UserError("--stage pretrain runs in one process")
+    if args.tpn_lr is not None or args.tpn_episodes is not None:
+        raise UserError("--tpn-lr and --tpn-episodes go with the presets "
+                        f"{sorted(TPN_PIPELINES)}")
+    summaries = run_pretrain(pretrain_configs(args), args.resume, args)
+    return summaries[0] if args.seeds is None else {"runs": summaries}
+
+
+def main_pretrain_pipeline(args) -> dict:
+    """--preset vtnet: the pre-training (RUN_DIR-pretrain), then the training run from it
+    (each tested unless --no-test). A --resume continues whichever stage was running."""
+    from orgnav_jax.training.loop import seed_run_dir
+    if start_processes(args) > 1:
+        raise UserError(f"--preset {args.preset} pre-trains first, in one process: run "
+                        "--stage pretrain, then --pretrained PRE_RUN_DIR on several")
+    fields = overrides_from_args(args)
+    run_dir = fields.get("run_dir", get_config(args.preset).run_dir)
+    first = seed_run_dir(run_dir, args.seeds[0]) if args.seeds else run_dir
+    if args.resume and is_run_dir(first):      # pre-training done: training resumes
+        cfg = nav_config(args)
+        if cfg.pretrained is None:     # options beside --run-dir: the preset's config
+            cfg = dataclasses.replace(cfg, pretrained=f"{str(run_dir).rstrip('/')}-pretrain")
+        pre = []
+    else:
+        cfg = nav_config(argparse.Namespace(**{**vars(args), "resume": False}))
+        pre = run_pretrain(pretrain_configs(args, cfg), args.resume, args)
+        cfg = dataclasses.replace(cfg, pretrained=f"{str(cfg.run_dir).rstrip('/')}-pretrain")
+    announce(cfg, f"run {cfg.run_dir}: model {cfg.model} from pre-training {cfg.pretrained}, "
+                  f"{cfg.num_envs} envs x {cfg.rollout_len} steps, "
+                  f"{cfg.total_env_steps:,} env steps")
+    resume = args.resume and is_run_dir(first)
+    if args.seeds is not None:
+        runs = api.train_seeds(cfg, args.seeds, resume=resume, progress=not args.quiet)
+        summaries = [finish(s, s["run_dir"], args) for s in runs]
+    else:
+        summaries = [finish(api.train(cfg, resume=resume, progress=not args.quiet),
+                            cfg.run_dir, args)]
+    for summary, p in zip(summaries, pre):
+        summary["pretrain"] = p
     return summaries[0] if args.seeds is None else {"runs": summaries}
 
 
