@@ -40,8 +40,9 @@ the attention scores, their softmax, the LayerNorms and the residual stream stay
 residual sums feed LayerNorm statistics); the LSTM and the heads as in models/trunk.py.
 
 Speed: the decoder's first self-attention reads target 0, so its values are the value
-bias alone and its output is out_proj(b_v) for every query whatever the weights: computed
-so (exact, not an approximation), it skips that layer's scores.
+bias alone and its output is out_proj(b_v) for every query whatever the weights, and
+norm1 of it one vector: computed so (exact, not an approximation), the first layer skips
+its self-attention's scores and a LayerNorm over every cell.
 """
 
 from __future__ import annotations
@@ -193,12 +194,12 @@ class DecoderLayer(nn.Module):
     @nn.compact
     def __call__(self, t, memory, query_pos, keep=None, first: bool = False):
         attn = MultiheadAttention(self.dim, self.heads, self.dtype, name="self_attn")
-        if first:
-            a = jnp.broadcast_to(attn.constant_output().astype(jnp.float32), t.shape)
+        if first:      # t = 0: norm1(0 + out_proj(b_v)) is one vector for every query
+            t = jnp.broadcast_to(_norm("norm1")(attn.constant_output().astype(jnp.float32)),
+                                 query_pos.shape)
         else:
             q = t + query_pos
-            a = attn(q, q, t).astype(jnp.float32)
-        t = _norm("norm1")(t + a)
+            t = _norm("norm1")(t + attn(q, q, t).astype(jnp.float32))
         c = MultiheadAttention(self.dim, self.heads, self.dtype, name="cross_attn")(
             t + query_pos, memory, memory, keep)
         t = _norm("norm2")(t + c.astype(jnp.float32))
@@ -217,9 +218,9 @@ class VTNetEncoder(nn.Module):
     """Instance tokens and the transformer encoder (module docstring) -> (encoded tokens
     (B, C, dim) float32, the kept keys (B, C) bool or None): the trunk's decoder reads
     both (NavModel passes an encoder's second output to the trunk as `extra`)."""
-    dim: int = 32
+    dim: int = 24
     heads: int = 1
-    ffn: int = 64
+    ffn: int = 48
     layers: int = 1
     mask: str = "none"
     dtype: Any = None
@@ -255,9 +256,9 @@ class VTNetTrunk(Trunk):
     `action_embed` the previous action's row (the release's 64 = R). recur, the heads,
     initial_carry and the release form come from Trunk; dropout (the release's
     visual_rep_embedding Dropout) masks the R per-cell channels."""
-    dim: int = 32
+    dim: int = 24
     heads: int = 1
-    ffn: int = 64
+    ffn: int = 48
     decoder_layers: int = 1
 
     def setup(self):
