@@ -29,10 +29,12 @@ queries and keys, never to values (DETR's convention, which the release keeps).
 
 Masks (`mask`): the release masks nothing: every category is a token, an undetected one
 with zero appearance, box and score (its label and indicator stay), and it attends and is
-attended like the others ("none", the default). "undetected" (a departure, offered for
-val) drops undetected categories from the keys of the encoder's self-attention and the
-decoder's cross-attention (a query with no key left gets a zero attention output, not a
-NaN); undetected tokens still get an encoder output, which no decoder query reads.
+attended like the others ("none", the default): so the target's token tells the policy
+which category it seeks even when nothing of it is detected. "undetected" (a departure,
+offered for val) drops the undetected categories other than the target from the keys of
+the encoder's self-attention and the decoder's cross-attention (the target's token stays a
+key, detected or not; a query with no key left would get a zero attention output, not a
+NaN); dropped tokens still get an encoder output, which no decoder query reads.
 
 Mixed precision (dtype bfloat16): matmuls take bf16 operands with float32 accumulation;
 the attention scores, their softmax, the LayerNorms and the residual stream stay float32
@@ -207,11 +209,11 @@ class DecoderLayer(nn.Module):
         return _norm("norm3")(t + f.astype(jnp.float32))
 
 
-def detected(conf, mask: str):
-    """The keys kept by the attention masks (module docstring): None (mask "none") or
-    conf > 0 (B, C) (mask "undetected")."""
-    return choose({"none": lambda: None, "undetected": lambda: conf > 0}, mask,
-                  "VTNet attention mask (vtnet_mask)")()
+def kept_keys(conf, target, mask: str):
+    """The keys the attention masks keep (module docstring): None (mask "none", the
+    release) or (B, C) bool, the detected categories and the target (mask "undetected")."""
+    return choose({"none": lambda: None, "undetected": lambda: (conf > 0) | (target > 0)},
+                  mask, "VTNet attention mask (vtnet_mask)")()
 
 
 class VTNetEncoder(nn.Module):
@@ -244,7 +246,7 @@ class VTNetEncoder(nn.Module):
                                  conf.shape + (1,))
         x = jnp.concatenate([h.astype(jnp.float32), label, box, conf[..., None],
                              target[..., None]], axis=-1)
-        keep = detected(conf, self.mask)
+        keep = kept_keys(conf, target, self.mask)
         for i in range(self.layers):
             x = EncoderLayer(self.dim, self.heads, self.ffn, dt, name=f"layer_{i}")(x, keep)
         return x, keep

@@ -66,7 +66,8 @@ TargetInput = Literal["word_vector", "onehot_maps"]   # WE / SAVN's target: SAVN
 Optim = Literal["ours", "release"]       # the optimiser and advantage settings (OPTIM)
 SavnAct = Literal["greedy", "sample"]    # SAVN's test-time actions (the release samples)
 VTNetMask = Literal["none", "undetected"]   # VTNet's attention masks: none (the release)
-                                         # or undetected categories dropped from the keys
+                                         # or undetected categories (but the target)
+                                         # dropped from the keys
 DType = Literal["float32", "bfloat16"]   # the compute dtype of matmuls and activations
                                        # (parameters and optimizer state stay float32)
 IL_MODES, IL_STEPS, IL_NORMS = get_args(ILMode), get_args(ILStep), get_args(ILNorm)
