@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -77,12 +78,17 @@ def tiny_train(tiny_scenes):
 def batch(tiny_train):
     """Model inputs of 4 random states of the tiny training rooms."""
     from orgnav_jax.training.pretrain import sample_batch
-    inputs, _ = sample_batch(tiny_train, jax.random.PRNGKey(3), 4)
+    inputs, _ = jax.jit(sample_batch, static_argnums=2)(tiny_train, jax.random.PRNGKey(3), 4)
     return inputs
 
 
 def _decode(model, params, inputs):
     """The decoder's output (B, 49, dim) and the per-cell representation (B, 49, R)."""
+    return _decode_jit(model, params, inputs)
+
+
+@partial(jax.jit, static_argnums=0)
+def _decode_jit(model, params, inputs):       # one program per model (hashable, static)
     def f(m, i):
         tokens, keep = m.encoder(i.app, i.box, i.conf, i.target)
         return m.trunk.decode(i.glob, tokens, keep), m.trunk.visual(i.glob, tokens, keep)
@@ -148,11 +154,17 @@ def test_the_first_decoder_layers_constant_self_attention_is_exact():
     t = jnp.zeros((2, L, D))
     mem = jax.random.normal(jax.random.PRNGKey(1), (2, 5, D))
     qpos = jax.random.normal(jax.random.PRNGKey(2), (2, L, D))
-    params = layer.init(jax.random.PRNGKey(0), t, mem, qpos)
-    params = jax.tree_util.tree_map(
-        lambda x: x + 0.3 * jax.random.normal(jax.random.PRNGKey(x.size), x.shape), params)
-    full = layer.apply(params, t, mem, qpos, first=False)
-    fast = layer.apply(params, t, mem, qpos, first=True)
+    @jax.jit
+    def init(key):         # random biases too (init zeroes them), so b_v matters
+        params = layer.init(key, t, mem, qpos)
+        leaves, tree = jax.tree_util.tree_flatten(params)
+        keys = jax.random.split(jax.random.fold_in(key, 1), len(leaves))
+        return jax.tree_util.tree_unflatten(tree, [
+            x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
+    params = init(jax.random.PRNGKey(0))
+    apply = jax.jit(layer.apply, static_argnames="first")
+    full = apply(params, t, mem, qpos, first=False)
+    fast = apply(params, t, mem, qpos, first=True)
     np.testing.assert_allclose(np.asarray(fast), np.asarray(full), atol=2e-6)
 
 
@@ -166,11 +178,11 @@ def test_vtnet_attention_runs_in_float32_under_bfloat16(tiny_train, batch):
     assert w.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(w.sum(-1)), 1.0, atol=1e-6)
     out = {}
+    params = init_params(build_model(get_config("tiny", model="vtnet"), tiny_train),
+                         jax.random.PRNGKey(0), tiny_train)   # the same for both dtypes
+    assert {str(x.dtype) for x in jax.tree_util.tree_leaves(params)} == {"float32"}
     for dtype in ("float32", "bfloat16"):
-        cfg = get_config("tiny", model="vtnet", dtype=dtype)
-        model = build_model(cfg, tiny_train)
-        params = init_params(model, jax.random.PRNGKey(0), tiny_train)
-        assert {str(x.dtype) for x in jax.tree_util.tree_leaves(params)} == {"float32"}
+        model = build_model(get_config("tiny", model="vtnet", dtype=dtype), tiny_train)
         fn = jax.jit(lambda p, i, m=model: m.apply(p, i, m.initial_carry(4))[:2])
         hlo = fn.lower(params, batch).as_text()
         out[dtype] = fn(params, batch), hlo
@@ -202,8 +214,8 @@ def test_initialisations_follow_the_release(tiny_train, batch):
                                0.01, rtol=1e-5)
     from orgnav_jax.training.pretrain import pretrain_init
     net = VTNetPretrain(model.encoder, model.trunk)
-    pre = pretrain_init(net.init({"params": jax.random.PRNGKey(0)}, batch),
-                        jax.random.PRNGKey(1))
+    pre = jax.jit(lambda i: pretrain_init(net.init({"params": jax.random.PRNGKey(0)}, i),
+                                          jax.random.PRNGKey(1)))(batch)
     flat = {_path(p): np.asarray(x) for p, x in jax.tree_util.tree_leaves_with_path(pre)}
     assert not (flat["params/encoder/local_0/bias"] == 0).all()
     assert not (flat["params/pretrain_fc/bias"] == 0).all()
@@ -225,8 +237,8 @@ def test_pretrained_parameters_step_at_the_scaled_learning_rate(tiny_train):
     grads = jax.tree_util.tree_map(jnp.ones_like, params)
     plain = make_optimizer(cfg)
     scaled = make_optimizer(get_config("tiny", model="vtnet", pretrained="somewhere"))
-    u0, _ = plain.update(grads, plain.init(params), params)
-    u1, _ = scaled.update(grads, scaled.init(params), params)
+    step = lambda opt: jax.jit(lambda g, p: opt.update(g, opt.init(p), p)[0])(grads, params)
+    u0, u1 = step(plain), step(scaled)
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(u0),
                             jax.tree_util.tree_leaves(u1)):
         factor = cfg.pretrained_lr_scale if is_visual(_path(path)[len("params/"):]) else 1.0
@@ -237,15 +249,16 @@ def test_pretrained_parameters_step_at_the_scaled_learning_rate(tiny_train):
 
 SMALL = ["--num-envs", "16", "--rollout-len", "8", "--updates-per-chunk", "2",
          "--total-env-steps", str(2 * 16 * 8 * 2), "--eval-every-chunks", "2",
-         "--eval-episodes-per-room-type", "2", "--checkpoint-every-chunks", "1",
-         "--pretrain-batch", "64", "--pretrain-samples", str(64 * 2 * 24),
+         "--eval-episodes-per-room-type", "2", "--checkpoint-every-chunks", "5",
+         "--pretrain-batch", "64", "--pretrain-samples", str(64 * 2 * 10),
          "--pretrain-val-samples", "512", "--quiet", "--no-test"]
 
 
 @pytest.fixture(scope="module")
 def cli_run(tmp_path_factory, tiny_dir):
-    """`--preset vtnet` on the tiny scenes: 24 chunks of pre-training (64 x 2 samples
-    each, val every 2), then 2 chunks of A2C from it."""
+    """`--preset vtnet` on the tiny scenes: 10 chunks of pre-training (64 x 2 samples
+    each, val every 2; the val cross-entropy drops from ~1.79 to ~1.44 by then and levels
+    off near 1.33 after ~2000 samples), then 2 chunks of A2C from it."""
     root = tmp_path_factory.mktemp("vtnet")
     run = root / "run"
     summary = train_cli.main(["--preset", "vtnet", "--scenes-dir", tiny_dir,
@@ -264,9 +277,9 @@ def test_cli_pretrains_then_trains_from_it(cli_run):
     saved = json.loads((pre / "config.json").read_text())
     assert saved["stage"] == "pretrain" and saved["model"] == "vtnet"
     val = _records(pre, "val")
-    assert len(val) == 12 and all({"accuracy", "ce"} <= set(r) for r in val)
-    assert [r["samples"] for r in val] == [256 * (i + 1) for i in range(12)]
-    assert summary["pretrain"]["samples"] == 64 * 2 * 24
+    assert len(val) == 5 and all({"accuracy", "ce"} <= set(r) for r in val)
+    assert [r["samples"] for r in val] == [256 * (i + 1) for i in range(5)]
+    assert summary["pretrain"]["samples"] == 64 * 2 * 10
     nav = json.loads((run / "config.json").read_text())
     assert nav.get("stage", "nav") == "nav" and nav["pretrained"] == str(pre)
     assert summary["env_steps"] == 2 * 16 * 8 * 2 and (run / "best").is_dir()
@@ -327,10 +340,10 @@ def test_pretraining_resumes_to_a_larger_budget(cli_run, capsys):
     root, run, _ = cli_run
     pre = f"{run}-pretrain"
     out = train_cli.main(["--stage", "pretrain", "--resume", "--run-dir", pre,
-                          "--pretrain-samples", str(64 * 2 * 26), "--quiet"])
-    assert out["samples"] == 64 * 2 * 26 and out["chunks"] == 26
+                          "--pretrain-samples", str(64 * 2 * 12), "--quiet"])
+    assert out["samples"] == 64 * 2 * 12 and out["chunks"] == 12
     samples = [r["samples"] for r in _records(pre, "train")]
-    assert samples == [128 * (i + 1) for i in range(26)]
+    assert samples == [128 * (i + 1) for i in range(12)]
 
 
 @pytest.mark.parametrize("argv, message", [
