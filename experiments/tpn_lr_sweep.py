@@ -6,7 +6,9 @@
 
 Evaluates the TPN run's base model with test-time updates at each learning rate (and the
 base alone, lr 0) on the val episodes (250 per room type) and writes a JSON of the
-overall metrics per learning rate, rewritten after each one.
+overall metrics per learning rate, rewritten after each one. Each learning rate's results
+file (OUT.lr<lr>.json) is kept: after an interruption the same command reads the ones
+already made and evaluates the rest.
 """
 
 from __future__ import annotations
@@ -28,8 +30,12 @@ def main() -> None:
     args = ap.parse_args()
     out, results = Path(args.out), {}
     for lr in args.lrs:
-        res = api.evaluate_run(args.tpn_dir, args.split, tpn_lr=lr, scope=args.scope,
-                               out=out.with_suffix(f".lr{lr:g}.json"), progress=False)
+        one = out.with_suffix(f".lr{lr:g}.json")
+        if api.is_results_json(one):     # done before an interruption: read, not re-run
+            res = json.loads(one.read_text())
+        else:
+            res = api.evaluate_run(args.tpn_dir, args.split, tpn_lr=lr, scope=args.scope,
+                                   out=one, progress=False)
         results[f"{lr:g}"] = res["overall"]
         out.write_text(json.dumps({"tpn_dir": args.tpn_dir, "split": args.split,
                                    "scope": args.scope, "results": results}, indent=1))

@@ -2,17 +2,31 @@
 
     python experiments/val_choices.py            # experiments/results/val_choices/
 
-Reads the sweeps of experiments/results/val_choices (made with seed 100, which no table
-row uses; the commands are in docs/results.md):
+Reads the sweeps of experiments/results/val_choices, made on the release's networks
+(issues 39-41; seeds 100+, which no table row uses; the commands are in docs/results.md
+and docs/training.md). The sweeps made before parity are kept, unchanged, in
+experiments/results/before_parity/val_choices.
 - dropout.json: the Baseline with dropout 0 and 0.25 (2 M env steps, best val);
-- il.json: IL variants (step, norm, weight) at the chosen dropout (2 M env steps);
-- tpn_lr_<base>.json: the TPN's test-time learning rate on a Baseline and an ORG + IL
-  base (5 M env steps, 40 k stage-2 episodes, 1000 val episodes per lr);
-- savn.json: D-SAVN's inner lr and segment length k (2 M env steps), used by both SAVN
-  rows.
-Each choice is the variant with the highest val success (SPL breaks ties). It writes
-choices.json (the choices with their val numbers; tests/test_val_choices.py ties the
-package's defaults to it) and choices.md (the table in docs/results.md).
+- il.json, il_101.json, il_more.json: IL variants (step, norm, weight; 2 M env steps;
+  seed 100, the weights again with seed 101, step and norm; mean over each variant's
+  seeds);
+- optim.json: the optimiser and advantage settings, ours against the release's, on the
+  Baseline and ORG + IL (5 M env steps): variants `<row>-ours`, `<row>-release`;
+- tpn_placement_<base>_<run>.json: the TPN's test-time lr sweep (1000 val episodes per
+  lr) of each stage-2 variant on each base (5 M env steps, 40 k stage-2 episodes): run
+  `tpn` (placement state, stage-2 optimiser ours), `tpn-release` (placement release),
+  `tpn-release-optim` (placement release, the release's stage-2 optimiser and cap);
+  lr 0 (the base alone) is in the `tpn` run's file;
+- savn.json: D-SAVN's inner lr and segment length k (2 M env steps), both SAVN rows;
+- savn_act.json: D-SAVN's val success with greedy and with sampled test-time actions
+  (variants `greedy`, `sample`; the same trained runs);
+- savn_optim.json: D-SAVN with our optimiser against SAVN's release's (`dsavn-ours`,
+  `dsavn-release`).
+A file not made yet gives no choice (the defaults then stay, and the test skips it).
+Each choice is the variant with the highest val success (SPL breaks ties); a choice over
+several rows or bases takes the mean over them. It writes choices.json (the choices with
+their val numbers; tests/test_val_choices.py ties the package's defaults to it) and
+choices.md (the table in docs/results.md).
 """
 
 from __future__ import annotations
@@ -22,7 +36,13 @@ import sys
 from pathlib import Path
 
 OUT = Path(__file__).resolve().parent / "results" / "val_choices"
-TPN_BASES = {"baseline-d0-s100": "Baseline", "org_il-s100": "ORG + IL"}
+TPN_BASES = {"baseline-ours-s100": "Baseline", "org_il-cause-w0.3-s100": "ORG + IL"}
+# stage-2 run name -> (placement, stage-2 optim)
+TPN_RUNS = {"tpn": ("state", "ours"), "tpn-release": ("release", "ours"),
+            "tpn-release-optim": ("release", "release")}
+OPTIM_ROWS = {"baseline": "Baseline", "org_il": "ORG + IL"}
+# the IL sweep's runs: seed 100 (il), seed 101 (il_101), step and norm at seed 100 (il_more)
+IL_SWEEPS = ("il", "il_101", "il_more")
 
 
 def best(scores: dict[str, dict]) -> str:
@@ -30,84 +50,149 @@ def best(scores: dict[str, dict]) -> str:
     return max(scores, key=lambda k: (scores[k]["success"], scores[k]["spl"]))
 
 
-def sweep(path: Path) -> dict[str, dict]:
-    """A val_sweep.py JSON -> {variant: {success, spl, overrides, seeds}} (mean over
-    seeds)."""
-    doc = json.loads(path.read_text())
+def mean(records: list[dict]) -> dict:
+    return {m: sum(r[m] for r in records) / len(records) for m in ("success", "spl")}
+
+
+def sweep(*paths: Path) -> dict[str, dict]:
+    """val_sweep.py JSONs (runs of one variant may be spread over several) -> {variant:
+    {success, spl, overrides, row, seeds}} (mean over seeds)."""
+    doc = {}
+    for path in paths:
+        if path.exists():
+            for variant, by_seed in json.loads(path.read_text()).items():
+                doc.setdefault(variant, {}).update(by_seed)
     out = {}
     for variant, by_seed in doc.items():
         runs = list(by_seed.values())
-        out[variant] = {"success": sum(r["success"] for r in runs) / len(runs),
-                        "spl": sum(r["spl"] for r in runs) / len(runs),
-                        "overrides": runs[0]["overrides"], "row": runs[0]["row"],
-                        "seeds": sorted(by_seed, key=int)}
+        out[variant] = {**mean(runs), "overrides": runs[0]["overrides"],
+                        "row": runs[0]["row"], "seeds": sorted(by_seed, key=int)}
     return out
+
+
+def pick_fields(root: Path, names: tuple[str, ...], fields: dict,
+                keep=lambda v: True) -> dict:
+    """Choices of `fields` ({field: default}) from the sweeps `<name>.json`."""
+    scores = {k: v for k, v in sweep(*(root / f"{n}.json" for n in names)).items()
+              if keep(v)}
+    pick = best(scores)
+    source = [f"{n}.json" for n in names if (root / f"{n}.json").exists()]
+    return {f: {"value": scores[pick]["overrides"].get(f, default), "variant": pick,
+                "val": scores, "from": source} for f, default in fields.items()}
+
+
+def optim_choice(root: Path) -> dict:
+    """ours | release: the mean over OPTIM_ROWS of each setting's best val."""
+    scores = sweep(root / "optim.json")
+    by = {}
+    for variant, r in scores.items():
+        row, _, setting = variant.rpartition("-")
+        by.setdefault(setting, {})[row] = r
+    rows = set.intersection(*(set(r) for r in by.values()))
+    means = {s: mean([r[row] for row in rows]) for s, r in by.items()}
+    pick = best(means)
+    return {"optim": {"value": pick, "variant": f"{pick} (mean of {len(rows)} rows)",
+                      "val": scores, "from": "optim.json"}}
+
+
+def tpn_choice(root: Path) -> dict:
+    """placement, stage-2 optim and test-time lr: the best (run, lr) by the mean over
+    the bases that have every run."""
+    per = {}
+    for base in TPN_BASES:
+        for run in TPN_RUNS:
+            path = root / f"tpn_placement_{base}_{run}.json"
+            if path.exists():
+                per.setdefault(base, {})[run] = json.loads(path.read_text())["results"]
+    bases = [b for b in per if set(per[b]) == set(TPN_RUNS)]
+    if not bases:
+        return {}
+    scores = {}
+    for run in TPN_RUNS:
+        lrs = set.intersection(*(set(per[b][run]) for b in bases)) - {"0"}
+        for lr in lrs:
+            scores[f"{run} @ {lr}"] = mean([per[b][run][lr] for b in bases])
+    pick = best(scores)
+    run, _, lr = pick.partition(" @ ")
+    placement, optim = TPN_RUNS[run]
+    val = {b: {r: {lr: {m: x[m] for m in ("success", "spl")} for lr, x in res.items()}
+               for r, res in per[b].items()} for b in bases}
+    source = [f"tpn_placement_{b}_{r}.json" for b in bases for r in TPN_RUNS]
+    common = {"variant": pick, "val": val, "mean": scores, "from": source}
+    return {"tpn_placement": {"value": placement, **common},
+            "tpn_stage2_optim": {"value": optim, **common},
+            "tpn_lr": {"value": float(lr), **common}}
+
+
+def sweep_files(root: Path = OUT) -> list[Path]:
+    """The val_sweep.py-form JSONs the choices read (each {variant: {seed: record}})."""
+    names = ("dropout", *IL_SWEEPS, "optim", "savn", "savn_optim", "savn_act")
+    return [root / f"{n}.json" for n in names if (root / f"{n}.json").exists()]
 
 
 def choices(root: Path = OUT) -> dict:
-    """{setting: {"value", "val", "from"}} for dropout, the IL fields and tpn_lr."""
+    """{setting: {"value", "variant", "val", "from"}} for each sweep that exists."""
     out = {}
-    drop = sweep(root / "dropout.json")
-    pick = best(drop)
-    out["dropout"] = {"value": drop[pick]["overrides"]["dropout"], "variant": pick,
-                      "val": drop, "from": "dropout.json"}
-    il = sweep(root / "il.json")
-    il_only = {k: v for k, v in il.items() if v["row"] == "il"}
-    pick = best(il_only)
-    fields = il_only[pick]["overrides"]
-    for name, default in (("il_step", "state"), ("il_norm", "per_step"),
-                          ("il_weight", 1.0)):
-        out[name] = {"value": fields.get(name, default), "variant": pick, "val": il,
-                     "from": "il.json"}
+    if (root / "dropout.json").exists():
+        out |= pick_fields(root, ("dropout",), {"dropout": 0.0})
+    if (root / "il.json").exists():
+        out |= pick_fields(root, IL_SWEEPS, {"il_step": "state", "il_norm": "per_step",
+                                             "il_weight": 1.0}, keep=lambda v: v["row"] == "il")
+    if (root / "optim.json").exists():
+        out |= optim_choice(root)
+    out |= tpn_choice(root)
     if (root / "savn.json").exists():
-        savn = sweep(root / "savn.json")
-        pick = best(savn)
-        for name, default in (("savn_inner_lr", 1e-4), ("savn_steps", 6)):
-            out[name] = {"value": savn[pick]["overrides"].get(name, default),
-                         "variant": pick, "val": savn, "from": "savn.json"}
-    per_base = {}
-    for base in TPN_BASES:
-        path = root / f"tpn_lr_{base}.json"
-        if path.exists():
-            per_base[base] = json.loads(path.read_text())["results"]
-    if per_base:
-        lrs = set.intersection(*(set(r) for r in per_base.values()))
-        mean = {lr: {m: sum(r[lr][m] for r in per_base.values()) / len(per_base)
-                     for m in ("success", "spl")} for lr in lrs}
-        pick = best(mean)
-        out["tpn_lr"] = {"value": float(pick), "variant": f"lr {pick}",
-                         "val": {b: {lr: {m: r[m] for m in ("success", "spl")}
-                                     for lr, r in res.items()}
-                                 for b, res in per_base.items()},
-                         "from": [f"tpn_lr_{b}.json" for b in per_base]}
+        out |= pick_fields(root, ("savn",), {"savn_inner_lr": 1e-4, "savn_steps": 6})
+    if (root / "savn_act.json").exists():
+        out |= pick_fields(root, ("savn_act",), {"savn_act": "greedy"})
+    if (root / "savn_optim.json").exists():
+        out |= {"savn_optim": pick_fields(root, ("savn_optim",), {"optim": "ours"})["optim"]}
     return out
 
 
+def cells(val: dict) -> str:
+    """'variant: success / SPL' per variant (x100), with the seeds when more than one."""
+    return "; ".join(f"{v}: {100 * r['success']:.1f} / {100 * r['spl']:.1f}"
+                     + (f" (seeds {', '.join(r['seeds'])})" if len(r.get("seeds", ())) > 1
+                        else "") for v, r in val.items())
+
+
 def markdown(ch: dict) -> str:
-    lines = ["| choice | val success / SPL (seed 100) | picked |", "|---|---|---|"]
-    for name in ("dropout", "il_step"):
-        c = ch[name]
-        cells = "; ".join(f"{v}: {100 * r['success']:.1f} / {100 * r['spl']:.1f}"
-                          for v, r in c["val"].items())
-        what = ("dropout (Baseline, 2 M steps)" if name == "dropout"
-                else "IL step, norm and weight (2 M steps)")
-        picked = (str(c["value"]) if name == "dropout" else
-                  f"`{c['variant']}`: il_step {ch['il_step']['value']}, il_norm "
-                  f"{ch['il_norm']['value']}, il_weight {ch['il_weight']['value']:g}")
-        lines.append(f"| {what} | {cells} | {picked} |")
+    lines = ["| choice | val success / SPL (seeds 100+) | picked |", "|---|---|---|"]
+    simple = (("dropout", "dropout (Baseline, 2 M steps)"),
+              ("savn_act", "SAVN's test-time actions (D-SAVN)"),
+              ("savn_optim", "SAVN's optimiser (D-SAVN, 2 M steps)"))
+    for name, what in simple[:1]:
+        if name in ch:
+            lines.append(f"| {what} | {cells(ch[name]['val'])} | {ch[name]['value']} |")
+    if "il_step" in ch:
+        c = ch["il_step"]
+        lines.append(f"| IL step, norm and weight (2 M steps) | {cells(c['val'])} | "
+                     f"`{c['variant']}`: il_step {c['value']}, il_norm "
+                     f"{ch['il_norm']['value']}, il_weight {ch['il_weight']['value']:g} |")
+    if "optim" in ch:
+        lines.append(f"| optimiser and advantage (5 M steps) | {cells(ch['optim']['val'])} "
+                     f"| {ch['optim']['value']} |")
+    if "tpn_lr" in ch:
+        c = ch["tpn_lr"]
+        for base, runs in c["val"].items():
+            for run, res in runs.items():
+                lrs = "; ".join(f"{lr}: {100 * r['success']:.1f} / {100 * r['spl']:.1f}"
+                                for lr, r in sorted(res.items(), key=lambda x: float(x[0])))
+                lines.append(f"| TPN, {TPN_BASES[base]}, `{run}` (1000 val episodes per lr) "
+                             f"| {lrs} | |")
+        lines.append(f"| TPN placement, stage-2 optimiser, test-time lr (mean of the bases) "
+                     f"| {cells(c['mean'])} | `{c['variant']}`: placement "
+                     f"{ch['tpn_placement']['value']}, stage-2 optim "
+                     f"{ch['tpn_stage2_optim']['value']}, tpn_lr {c['value']:g} |")
     if "savn_inner_lr" in ch:
         c = ch["savn_inner_lr"]
-        cells = "; ".join(f"{v}: {100 * r['success']:.1f} / {100 * r['spl']:.1f}"
-                          for v, r in c["val"].items())
-        lines.append(f"| D-SAVN inner lr and k (2 M steps) | {cells} | `{c['variant']}`: "
-                     f"savn_inner_lr {c['value']:g}, savn_steps "
+        lines.append(f"| D-SAVN inner lr and k (2 M steps) | {cells(c['val'])} | "
+                     f"`{c['variant']}`: savn_inner_lr {c['value']:g}, savn_steps "
                      f"{ch['savn_steps']['value']} |")
-    if "tpn_lr" in ch:
-        for base, res in ch["tpn_lr"]["val"].items():
-            cells = "; ".join(f"{lr}: {100 * r['success']:.1f} / {100 * r['spl']:.1f}"
-                              for lr, r in sorted(res.items(), key=lambda x: float(x[0])))
-            lines.append(f"| TPN test-time lr, {TPN_BASES[base]} (1000 val episodes) | "
-                         f"{cells} | {ch['tpn_lr']['value']:g} (mean of both bases) |")
+    for name, what in simple[1:]:
+        if name in ch:
+            lines.append(f"| {what} | {cells(ch[name]['val'])} | {ch[name]['value']} |")
     return "\n".join(lines) + "\n"
 
 

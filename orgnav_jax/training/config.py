@@ -129,8 +129,8 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     pretrained_lr_scale: float = 0.1
     # imitation (trial-driven IL): none | deadlock | all | failed (see IL_MODES, IL_STEPS)
     il: ILMode = "none"
-    il_weight: float = 1.0
-    il_step: ILStep = "state"
+    il_weight: float = 0.3            # step, norm and weight chosen on val (issue 42;
+    il_step: ILStep = "cause"         #   experiments/results/val_choices, docs/training.md)
     il_norm: ILNorm = "per_step"
     # environment
     success_reward: float = 5.0
