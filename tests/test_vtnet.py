@@ -172,8 +172,8 @@ def test_vtnet_attention_runs_in_float32_under_bfloat16(tiny_train, batch):
     """--dtype bfloat16: the matmuls take bf16 operands, the attention weights (scores,
     softmax) are float32 and sum to 1 to float32 precision; the outputs agree with the
     float32 model's to bf16 precision; parameters stay float32."""
-    q = jax.random.normal(jax.random.PRNGKey(0), (2, 1, 49, 24)).astype(jnp.bfloat16)
-    k = jax.random.normal(jax.random.PRNGKey(1), (2, 1, 22, 24)).astype(jnp.bfloat16)
+    q = jax.random.normal(jax.random.PRNGKey(0), (2, 1, 49, 16)).astype(jnp.bfloat16)
+    k = jax.random.normal(jax.random.PRNGKey(1), (2, 1, 22, 16)).astype(jnp.bfloat16)
     w = attention_weights(q, k)
     assert w.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(w.sum(-1)), 1.0, atol=1e-6)
@@ -351,7 +351,7 @@ def test_pretraining_resumes_to_a_larger_budget(cli_run, capsys):
     (["--pretrained", "{pre}", "--model", "baseline"], "config field 'pretrained'"),
     (["--pretrained", "{root}/nowhere", "--model", "vtnet"], "not found"),
     (["--pretrained", "{pre}", "--model", "vtnet", "--vtnet-dim", "32"],
-     "pre-trained with vtnet_dim 24 (this run: 32)"),
+     "pre-trained with vtnet_dim 16 (this run: 32)"),
     (["--model", "vtnet", "--vtnet-heads", "5"], "config field 'vtnet_heads': 5"),
     (["--model", "vtnet", "--vtnet-mask", "all"], "config field 'vtnet_mask'"),
 ])

@@ -220,9 +220,9 @@ class VTNetEncoder(nn.Module):
     """Instance tokens and the transformer encoder (module docstring) -> (encoded tokens
     (B, C, dim) float32, the kept keys (B, C) bool or None): the trunk's decoder reads
     both (NavModel passes an encoder's second output to the trunk as `extra`)."""
-    dim: int = 24
+    dim: int = 16
     heads: int = 1
-    ffn: int = 48
+    ffn: int = 32
     layers: int = 1
     mask: str = "none"
     dtype: Any = None
@@ -258,9 +258,9 @@ class VTNetTrunk(Trunk):
     `action_embed` the previous action's row (the release's 64 = R). recur, the heads,
     initial_carry and the release form come from Trunk; dropout (the release's
     visual_rep_embedding Dropout) masks the R per-cell channels."""
-    dim: int = 24
+    dim: int = 16
     heads: int = 1
-    ffn: int = 48
+    ffn: int = 32
     decoder_layers: int = 1
 
     def setup(self):

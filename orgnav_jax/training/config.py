@@ -106,9 +106,9 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     # width (the release's d_model, 256 at paper widths), heads, FFN width and layers; the
     # per-cell width is fuse_channels and the LSTM width hidden. Fields added within config
     # version 8: their defaults are what every earlier run was (no VTNet).
-    vtnet_dim: int = 24               # small widths (docs/vtnet.md: chosen for the speed
-    vtnet_heads: int = 1              # target, 1/3 of the Baseline's env-steps/s; 32
-    vtnet_ffn: int = 48               # trained at 0.27-0.30 of it on 2 cores)
+    vtnet_dim: int = 16               # small widths (docs/vtnet.md: chosen for the speed
+    vtnet_heads: int = 1              # target, 1/3 of the Baseline's env-steps/s on 2
+    vtnet_ffn: int = 32               # cores: 16 ~0.5, 24 ~0.27-0.40, 32 ~0.27-0.30)
     vtnet_encoder_layers: int = 1
     vtnet_decoder_layers: int = 1
     vtnet_mask: VTNetMask = "none"
