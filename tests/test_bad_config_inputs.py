@@ -481,8 +481,8 @@ CONFIG_JSON_CASES = [
                                       "total_env_steps >= 1 and at most 1,000,000,000,000"),
     ("model", '{"name": "org"}', "config field 'model': {'name': 'org'}, expected a string"),
     ("scenes_dir", "[]", "config field 'scenes_dir': [], expected a string or null"),
-    ("version", "5.0", "config version 5.0, this orgnav_jax reads versions [2, 3, 4, 5, 6, 7]"),
-    ("stage", '["nav"]', "field 'stage': expected one of ['nav', 'tpn'], got ['nav']"),
+    ("version", "5.0", "config version 5.0, this orgnav_jax reads versions [2, 3, 4, 5, 6, 7, 8]"),
+    ("stage", '["nav"]', "field 'stage': expected one of ['nav', 'tpn', 'pretrain'], got ['nav']"),
 ]
 
 
