@@ -63,6 +63,9 @@ as XLA's analysis of the fully unrolled (lowered, not optimised) chunk at T = 1,
 Prints a table, then one JSON object as the last line:
 {"results": [{"preset", "model", "num_envs", "devices", "seeds", "env_steps_per_s",
 "compile_s", "gflops_per_s", "flops_per_env_step"}, ...], "matmul_peak_gflops": ...}
+A model's row timed beside a Baseline row (same preset, N, devices, seeds, dtype) also
+has "ratio_to_baseline": its env-steps/s over the Baseline's, after --ratio-rounds rounds
+of timing the two in turn (VTNet at small widths: docs/vtnet.md).
 """
 
 from __future__ import annotations
@@ -289,6 +292,9 @@ def main() -> None:
     ap.add_argument("--dtype", nargs="+", default=["float32"],
                     choices=["float32", "bfloat16"], help="compute dtypes (rows for each)")
     ap.add_argument("--matmul-repeats", type=int, default=8)
+    ap.add_argument("--ratio-rounds", type=int, default=3,
+                    help="rounds of timing each model's row and its Baseline row in turn "
+                         "before their ratio (ratio_to_baseline; docs/vtnet.md)")
     ap.add_argument("--savn", choices=("none", "also", "first-order"), default="none",
                     help="also time SAVN training of each model (training/savn.py; "
                          "first-order: both MAML orders); env-steps/s counts the steps the "
@@ -361,8 +367,35 @@ def main() -> None:
           "sharded); % peak: of the matmul peak measured first")
     peak = max(peak, matmul_peak_gflops(repeats=args.matmul_repeats))
     print(f"fp32 matmul peak, best of before and after: {peak:.1f} GFLOP/s", flush=True)
+    for r in add_baseline_ratios(rows, args.ratio_rounds):   # VTNet's target: >= 1/3
+        print(f"{r['preset']:6} {r['model']:9} N={r['num_envs']:<4d} {r['dtype']}: "
+              f"{r['ratio_to_baseline']:.3f} of the Baseline's env-steps/s", flush=True)
     results = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
     print(json.dumps({"results": results, "matmul_peak_gflops": round(peak, 2)}))
+
+
+def add_baseline_ratios(rows: list[dict], rounds: int = 0) -> list[dict]:
+    """Set ratio_to_baseline on each plain (A2C) row of another model: its env-steps/s
+    over the Baseline row of the same preset, N, devices, seeds and dtype timed in this
+    run (docs/vtnet.md) -> those rows. First `rounds` rounds of timing the row and its
+    Baseline row once each, in turn (retime: each keeps its best), so that a shared
+    machine's load, which changes over minutes, weighs on both alike."""
+    def key(r):
+        return r["preset"], r["num_envs"], r.get("devices"), r.get("seeds"), r.get("dtype")
+    plain = [r for r in rows if "devices" in r and "savn" not in r["model"]]
+    base = {key(r): r["env_steps_per_s"] for r in plain if r["model"] == "baseline"}
+    out = []
+    base_rows = {key(r): r for r in plain if r["model"] == "baseline"}
+    for r in plain:
+        if r["model"] != "baseline" and key(r) in base:
+            for _ in range(rounds):     # rows that keep their compiled chunk (_timed)
+                for row in (base_rows[key(r)], r):
+                    if "_timed" in row:
+                        retime(row, 1)
+                base[key(r)] = base_rows[key(r)]["env_steps_per_s"]
+            r["ratio_to_baseline"] = round(r["env_steps_per_s"] / base[key(r)], 3)
+            out.append(r)
+    return out
 
 
 if __name__ == "__main__":
