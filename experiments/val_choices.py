@@ -144,7 +144,7 @@ def choices(root: Path = OUT) -> dict:
     if (root / "savn.json").exists():
         out |= pick_fields(root, ("savn",), {"savn_inner_lr": 1e-4, "savn_steps": 6})
     if (root / "savn_act.json").exists():
-        out |= pick_fields(root, ("savn_act",), {"savn_act": "greedy"})
+        out |= pick_fields(root, ("savn_act",), {"savn_act": "sample"})
     if (root / "savn_optim.json").exists():
         out |= {"savn_optim": pick_fields(root, ("savn_optim",), {"optim": "ours"})["optim"]}
     return out

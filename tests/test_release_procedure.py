@@ -145,10 +145,10 @@ def test_optim_release_is_the_releases_settings():
 
 
 def test_savn_act_is_a_checked_option():
-    """SAVN's evaluation samples in its release (agents/agent.py:120): savn_act "sample";
-    the default stays greedy (not chosen on val yet)."""
-    assert get_config("savn").savn_act == "greedy"
-    assert get_config("savn", savn_act="sample").savn_act == "sample"
+    """SAVN's evaluation samples in its release (agents/agent.py:120): savn_act "sample",
+    the default (issue 41: the release's, no val comparison needed); greedy is the option."""
+    assert get_config("savn").savn_act == get_config("dsavn").savn_act == "sample"
+    assert get_config("savn", savn_act="greedy").savn_act == "greedy"
     with pytest.raises(ValueError, match="config field 'savn_act': 'argmax'"):
         get_config("savn", savn_act="argmax")
 
@@ -196,9 +196,9 @@ def test_evaluate_savn_act_overrides_a_savn_runs_test_time_actions(monkeypatch, 
     seen = []
     monkeypatch.setattr(savn, "run_policy", lambda c, model, scenes: seen.append(c.savn_act)
                         or SimpleNamespace(name=c.savn_act))
-    assert api.load_policy(run_dir="r").policy.name == "greedy"           # the run's own
-    assert api.load_policy(run_dir="r", savn_act="sample").policy.name == "sample"
-    assert seen == ["greedy", "sample"]
+    assert api.load_policy(run_dir="r").policy.name == "sample"           # the run's own
+    assert api.load_policy(run_dir="r", savn_act="greedy").policy.name == "greedy"
+    assert seen == ["sample", "greedy"]
     cfg["cfg"] = get_config("baseline")
     with pytest.raises(UserError, match="--savn-act: r is a baseline run without SAVN"):
         api.load_policy(run_dir="r", savn_act="sample")

@@ -166,7 +166,7 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     savn_inner_lr: float = 1e-4       # the release's inner_lr
     savn_inner_steps: int = 4         # inner steps per episode (the release's gradient_limit)
     savn_first_order: bool = False
-    savn_act: SavnAct = "greedy"      # test-time actions: greedy, or sampled (the release)
+    savn_act: SavnAct = "sample"      # test-time actions: sampled (the release), or greedy
 
     @property
     def steps_per_update(self) -> int:
