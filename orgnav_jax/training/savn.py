@@ -518,7 +518,7 @@ def run_policy(cfg, model, scenes) -> Policy:
     reward); `scenes`: any split of the run's scene set (for its feature widths)."""
     return savn_policy(model, build_learned_loss(), cfg.savn_steps, cfg.savn_inner_steps,
                        cfg.savn_inner_lr, scene_widths(scenes),
-                       f"{cfg.model}+SAVN" + ("-sampled" if cfg.savn_act == "sample" else ""),
+                       f"{cfg.model}+SAVN" + ("-greedy" if cfg.savn_act == "greedy" else ""),
                        cfg.savn_act)
 
 
