@@ -43,6 +43,17 @@ full model (ORG+IL+TPN) is org_il+tpn. A suffix @LR sets the test-time learning 
 vmapped population axis of one jitted chunk: api.train_seeds) before the table is
 filled; the run directories, resumption and results are the same as without it (seeds
 of a row that were started one by one are finished one by one).
+
+VTNet's rows (issue 43, docs/vtnet.md): `vtnet` pre-trains each seed's visual
+transformer on the expert's actions first (api.pretrain of the seed's PretrainConfig, in
+OUT/runs/vtnet-pretrain-s<seed> beside the row's runs: config.json, metrics.jsonl with
+the val accuracy, provenance.json), then trains A2C from it (the run's `pretrained`), as
+`python -m orgnav_jax.train --preset vtnet` does; `vtnet_scratch` has no pre-training.
+A rerun reuses a finished pre-training, resumes a partial one, and skips it once the A2C
+run has started. The pre-trainings run one seed at a time (they are minutes each; the
+A2C stage of a population still trains its seeds in one program). The pre-training's
+budget (samples, batch, best val accuracy) goes into the row's results per seed and a
+note under table.md: it is supervision the other rows do not get.
 """
 
 from __future__ import annotations
@@ -60,8 +71,8 @@ import numpy as np
 from orgnav_jax import api
 from orgnav_jax.errors import INT32_MAX, is_int, read_json, run_cli, shown
 from orgnav_jax.training.run_dir import RunLock, is_run_dir
-from orgnav_jax.training.config import TABLE_ROWS, add_config_arguments, get_config, \
-    overrides_from_args
+from orgnav_jax.training.config import TABLE_ROWS, VTNET_PRESETS, add_config_arguments, \
+    get_config, overrides_from_args
 
 METRICS = ("success", "spl", "success_L5", "spl_L5")
 # failure analysis columns: (result key, column label, scale); see docs/evaluation.md
@@ -71,6 +82,13 @@ FAILURE_METRICS = (("wrong_done", "wrong Done", 100), ("timeout", "timeout", 100
 TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": "random"},
                 "tpn_cosine": {"deadlock": "cosine"},
                 "tpn_train_mode": {"tpn_train_mode": True}}   # the release's dropout confound
+
+
+# the rows: the Tables' presets and VTNet's (issue 43)
+ROWS = {**TABLE_ROWS, **VTNET_PRESETS}
+# rows whose A2C run starts from a supervised pre-training of the seed, as `--preset
+# vtnet` does (train.py: PRETRAIN_PIPELINES), in OUT/runs/<row>-pretrain-s<seed>
+PRETRAIN_ROWS = ("vtnet",)
 
 
 SPEC_KEYS = {"out": str, "rows": list, "seeds": list, "config": dict, "tpn": dict}
@@ -168,6 +186,9 @@ def check_run_files(out: Path, rows: list[str], seeds: list[int]) -> None:
                 read_results_overall(results)
             base_dir = out / "runs" / f"{row.partition('+')[0]}-s{seed}"
             read_provenance(base_dir / "provenance.json")
+            if row.partition("+")[0] in PRETRAIN_ROWS:
+                read_provenance(pretrain_dir(out, row.partition("+")[0], seed) /
+                                "provenance.json")
             if "+" in row:
                 read_provenance(base_dir / "tpn" / "provenance.json")
 
@@ -203,6 +224,50 @@ def run_tpn(row: str, seed: int, out: Path, overrides: dict, tpn_fields: dict) -
     return metrics
 
 
+def pretrain_dir(out: Path, row: str, seed: int | str) -> Path:
+    """Where a PRETRAIN_ROWS row's seed is pre-trained: OUT/runs/ROW-pretrain-sS (the
+    directory `--preset vtnet --seeds` uses for RUN_DIR = OUT/runs/ROW)."""
+    return out / "runs" / f"{row}-pretrain-s{seed}"
+
+
+def pretrain_seed(row: str, seed: int, out: Path, overrides: dict) -> Path:
+    """The pre-training of a PRETRAIN_ROWS row's seed (api.pretrain of the PretrainConfig
+    of the row's config, as `--preset vtnet` makes it): trained, resumed when partial,
+    reused without work when finished -> its directory (the A2C run's `pretrained`)."""
+    from orgnav_jax.training.checkpoints import RunCheckpoints
+    from orgnav_jax.training.pretrain import PretrainConfig
+    pre = pretrain_dir(out, row, seed)
+    cfg = PretrainConfig.of(get_config(row, **{**overrides, "seed": seed}),
+                            run_dir=str(pre), seed=seed, pretrained=None)
+    resumed = is_run_dir(pre)
+    if resumed and (RunCheckpoints(pre).latest_step() or 0) >= \
+            cfg.num_updates * cfg.pretrain_batch:
+        return pre                                     # finished: reused as it is
+    api.pretrain(cfg, resume=resumed, progress=sys.stderr.isatty())
+    record_provenance(pre, f"{'resumed and finished' if resumed else 'trained'} the "
+                           f"pre-training ({cfg.pretrain_samples:,} samples)")
+    return pre
+
+
+def pretrain_budget(out: Path, row: str, seed: int | str) -> dict:
+    """What a row's seed got on top of the table's budget: for a row of PRETRAIN_ROWS
+    (or a TPN row on one) its pre-training's samples (whole batches), batch and best val
+    accuracy (from the pre-training's config.json and metrics.jsonl); {} for other rows
+    and where the pre-training is not there."""
+    from orgnav_jax.training.pretrain import load_pretrain_config
+    from orgnav_jax.training.run_dir import read_metrics
+    base = row.partition("+")[0]
+    pre = pretrain_dir(out, base, seed)
+    if base not in PRETRAIN_ROWS or not is_run_dir(pre):
+        return {}
+    cfg = load_pretrain_config(pre)
+    val = [r["accuracy"] for r in read_metrics(pre, "samples", skip_broken=True)
+           if r["kind"] == "val" and "accuracy" in r]
+    return {"pretrain_samples": cfg.num_updates * cfg.pretrain_batch,
+            "pretrain_batch": cfg.pretrain_batch,
+            **({"pretrain_val_accuracy": max(val)} if val else {})}
+
+
 def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
     """Train (or resume, or skip) one row and seed -> its test metrics. Row `random`:
     the random policy on the same test episodes, its actions sampled with `seed`."""
@@ -217,35 +282,48 @@ def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
             progress=False)["overall"]
         record_provenance(run_dir, "tested")
         return metrics
-    cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir)})
+    pre = pretrain_dir(out, row, seed) if row in PRETRAIN_ROWS else None
+    cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir),
+                             **({"pretrained": str(pre)} if pre else {})})
     resumed = is_run_dir(run_dir)
+    if pre and not resumed:          # once the A2C run has started, its start is fixed
+        pretrain_seed(row, seed, out, overrides)
     api.train(cfg, resume=resumed, progress=sys.stderr.isatty())
     metrics = api.test_run(run_dir, progress=False)["overall"]
-    record_provenance(run_dir, f"{'resumed and finished' if resumed else 'trained'}, tested")
+    record_provenance(run_dir, f"{'resumed and finished' if resumed else 'trained'}"
+                               f"{f' from {pre.name}' if pre else ''}, tested")
     return metrics
 
 
 def train_row_population(row: str, seeds: list[int], out: Path, overrides: dict) -> None:
     """Train the seeds of navigation row `row` that lack test results in one program
     (OUT/runs/<row>-s<seed>); seeds whose runs were started separately are left to
-    run_one (a population resumes only runs at a common checkpoint), as are SAVN rows."""
+    run_one (a population resumes only runs at a common checkpoint), as are SAVN rows.
+    A PRETRAIN_ROWS row pre-trains its seeds first, one by one (pretrain_seed), and
+    seed S starts from OUT/runs/<row>-pretrain-sS."""
     todo = [s for s in seeds
             if not (out / "runs" / f"{row}-s{s}" / "test_results.json").exists()]
     started = [is_run_dir(out / "runs" / f"{row}-s{s}") for s in todo]
-    cfg = get_config(row, **{**overrides, "run_dir": str(out / "runs" / row)})
+    pre = {"pretrained": str(out / "runs" / f"{row}-pretrain")} if row in PRETRAIN_ROWS \
+        else {}                          # train_seeds: seed S's is <pretrained>-sS
+    cfg = get_config(row, **{**overrides, "run_dir": str(out / "runs" / row), **pre})
     if len(todo) < 2 or (any(started) and not all(started)) or cfg.savn:
         return                          # SAVN trains one seed per program (docs/savn.md)
+    if pre and not all(started):
+        for s in todo:
+            pretrain_seed(row, s, out, overrides)
     api.train_seeds(cfg, todo, resume=all(started), progress=sys.stderr.isatty())
     for s in todo:
         record_provenance(out / "runs" / f"{row}-s{s}",
-                          f"trained in one program with seeds {' '.join(map(str, todo))}")
+                          f"trained in one program with seeds {' '.join(map(str, todo))}"
+                          f"{f' from {row}-pretrain-s{s}' if pre else ''}")
 
 
 def row_name(text: str) -> str:
-    """Validate a --rows entry: ROW (a TABLE_ROWS name or random), or BASE+VARIANT[@LR]."""
+    """Validate a --rows entry: ROW (a ROWS name or random), or BASE+VARIANT[@LR]."""
     base, plus, variant = text.partition("+")
     variant, at, lr = variant.partition("@")
-    ok = (base in TABLE_ROWS or (base == "random" and not plus)) and \
+    ok = (base in ROWS or (base == "random" and not plus)) and \
         (not plus or variant in TPN_VARIANTS) and (plus or not at)
     try:
         ok = ok and (not at or float(lr) >= 0)
@@ -253,9 +331,9 @@ def row_name(text: str) -> str:
         ok = False
     if not ok:
         raise argparse.ArgumentTypeError(
-            f"unknown row {text!r}: expected one of {sorted(TABLE_ROWS)}, or BASE+VARIANT"
+            f"unknown row {text!r}: expected one of {sorted(ROWS)}, or BASE+VARIANT"
             f"[@LR] with VARIANT in {sorted(TPN_VARIANTS)}")
-    if plus and TABLE_ROWS[base].get("savn"):
+    if plus and ROWS[base].get("savn"):
         raise argparse.ArgumentTypeError(f"row {text!r}: a SAVN run cannot be a TPN base "
                                          "(docs/savn.md)")
     return text
@@ -292,15 +370,37 @@ def table_text(results: dict[str, dict[str, dict]]) -> str:
     METRICS in percent; TPN rows also show their success gain over their base row,
     paired by seed; then the failure analysis (FAILURE_METRICS: wrong Done and timeout
     in percent of episodes, revisits and failed moves per episode; '-' for older
-    results)."""
+    results). Rows whose seeds were pre-trained (pretrain_budget) are marked † and their
+    pre-training's budget is stated under the table (pretrain_notes)."""
     head = ["row", "seeds", "Success", "SPL", "Success (L>=5)", "SPL (L>=5)",
             "gain vs base"] + [label for _, label, _ in FAILURE_METRICS]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for row, by_seed in results.items():
         cells = [mean_std(by_seed, m) for m in METRICS] + [paired_gain(results, row)]
         cells += [mean_std(by_seed, k, scale) for k, _, scale in FAILURE_METRICS]
-        lines.append(f"| {row} | {len(by_seed)} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        mark = " †" if any("pretrain_samples" in r for r in by_seed.values()) else ""
+        lines.append(f"| {row}{mark} | {len(by_seed)} | " + " | ".join(cells) + " |")
+    notes = pretrain_notes(results)
+    return "\n".join(lines) + "\n" + ("\n" + "\n".join(notes) + "\n" if notes else "")
+
+
+def pretrain_notes(results: dict[str, dict[str, dict]]) -> list[str]:
+    """One line per row marked † in table_text: its pre-training's budget per seed (the
+    pretrain_budget fields of its results), extra supervision the other rows lack."""
+    out = []
+    for row, by_seed in results.items():
+        got = {s: r for s, r in by_seed.items() if "pretrain_samples" in r}
+        if not got:
+            continue
+        span = lambda key: "-".join(f"{v:,}" for v in sorted({r[key] for r in got.values()}))
+        acc = {s: r for s, r in got.items() if "pretrain_val_accuracy" in r}
+        out.append(f"† {row}: before the table's A2C budget, each seed's visual transformer "
+                   f"was pre-trained with supervision of the expert's actions on "
+                   f"{span('pretrain_samples')} (state, target) samples (batches of "
+                   f"{span('pretrain_batch')}; best val accuracy "
+                   f"{mean_std(acc, 'pretrain_val_accuracy')} %, {len(got)} seeds): "
+                   "supervision the other rows do not get.")
+    return out
 
 
 def write_table(out: Path, results: dict[str, dict[str, dict]]) -> str:
@@ -427,7 +527,7 @@ def check_out(out: Path, spec_path: str | None) -> None:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    rows = sorted(TABLE_ROWS) + [f"{b}+{v}" for b in sorted(TABLE_ROWS) for v in TPN_VARIANTS]
+    rows = sorted(ROWS) + [f"{b}+{v}" for b in sorted(ROWS) for v in TPN_VARIANTS]
     ap.add_argument("--rows", nargs="+", default=["baseline", "il", "org", "org_il", "il_all"],
                     type=row_name, metavar="ROW",
                     help="rows: " + ", ".join(rows) + " (TPN rows may end in @LR)")
@@ -492,6 +592,7 @@ def main(argv: list[str] | None = None) -> None:
                 train_row_population(base, args.seeds, out, overrides)
             metrics = (run_tpn(row, seed, out, overrides, tpn_fields) if "+" in row
                        else run_one(row, seed, out, overrides))
+            metrics = dict(metrics, **pretrain_budget(out, row, seed))
             results.setdefault(row, {})[str(seed)] = metrics
             print(f"{row} seed {seed}: " + ", ".join(f"{m} {100 * metrics[m]:.1f}"
                                                       for m in METRICS), flush=True)

@@ -305,7 +305,8 @@ TRAIN_PRESETS.update({name: dict(row, dropout=TABLE_DROPOUT, run_dir=f"runs/{nam
 # VTNet (issue 43; docs/vtnet.md), on the small benchmark with the rows' settings: the
 # release trains it by A3C alone (no IL). `--preset vtnet` pre-trains it first (a run in
 # RUN_DIR-pretrain: train.py), then trains from it; vtnet_scratch has no pre-training.
-# (Not TABLE_ROWS: experiments/run_table.py does not run the pre-training stage.)
+# (Not TABLE_ROWS: experiments/run_table.py adds them as rows, `vtnet` with its
+# pre-training per seed before A2C.)
 VTNET_PRESETS = {"vtnet": dict(model="vtnet", il="none"),
                  "vtnet_scratch": dict(model="vtnet", il="none")}
 TRAIN_PRESETS.update({name: dict(row, dropout=TABLE_DROPOUT, run_dir=f"runs/{name}")
