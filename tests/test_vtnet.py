@@ -346,6 +346,64 @@ def test_pretraining_resumes_to_a_larger_budget(cli_run, capsys):
     assert samples == [128 * (i + 1) for i in range(12)]
 
 
+class _Stop(Exception):
+    """An interruption of run_table.py (a kill, in effect) at a chosen point."""
+
+
+def test_run_table_runs_the_vtnet_row_through_both_stages_and_resumes(
+        cli_run, tiny_dir, tmp_path, monkeypatch):
+    """experiments/run_table.py, row vtnet, seed 0, cli_run's config (its compiled
+    programs): stopped after 4 of the 10 pre-training chunks, a rerun resumes the
+    pre-training (the log's samples continue, nothing redone); stopped between the
+    stages, a rerun reuses the finished pre-training (api.pretrain not called) and trains
+    A2C from it; the results and table.md state the pre-training's budget."""
+    import importlib.util
+
+    from orgnav_jax import api
+    from orgnav_jax.training import pretrain as P
+    path = Path(__file__).parents[1] / "experiments" / "run_table.py"
+    spec = importlib.util.spec_from_file_location("run_table", path)
+    run_table = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(run_table)
+    out = tmp_path / "table"
+    argv = ["--rows", "vtnet", "--seeds", "0", "--out", str(out), "--scenes-dir", tiny_dir,
+            *[a for a in SMALL if a not in ("--quiet", "--no-test")]]
+    pre, run = out / "runs" / "vtnet-pretrain-s0", out / "runs" / "vtnet-s0"
+    calls = []
+
+    def partial_pretrain(cfg, resume=False, progress=True):
+        P.pretrain(cfg, resume=resume, progress=False, stop_after_chunks=4)
+        raise _Stop
+
+    def stop(*a, **kw):
+        raise _Stop
+
+    monkeypatch.setattr(api, "pretrain", partial_pretrain)
+    with pytest.raises(_Stop):
+        run_table.main(argv)
+    assert [r["samples"] for r in _records(pre, "train")] == [128 * (i + 1) for i in range(4)]
+    monkeypatch.setattr(api, "pretrain", lambda cfg, resume=False, progress=True: calls.append(
+        resume) or P.pretrain(cfg, resume=resume, progress=False))
+    monkeypatch.setattr(api, "train", stop)          # killed before the A2C stage
+    with pytest.raises(_Stop):
+        run_table.main(argv)
+    assert calls == [True] and not run.exists()
+    assert [r["samples"] for r in _records(pre, "train")] == [128 * (i + 1) for i in range(10)]
+    monkeypatch.undo()
+    monkeypatch.setattr(api, "pretrain", stop)       # finished: must not be called again
+    run_table.main(argv)
+    nav = json.loads((run / "config.json").read_text())
+    assert nav["model"] == "vtnet" and nav["pretrained"] == str(pre) and nav["seed"] == 0
+    assert (run / "test_results.json").exists()
+    got = json.loads((out / "results.json").read_text())["vtnet"]["0"]
+    assert got["pretrain_samples"] == 64 * 2 * 10 and got["pretrain_batch"] == 64
+    assert got["pretrain_val_accuracy"] == max(r["accuracy"] for r in _records(pre, "val"))
+    table = (out / "table.md").read_text()
+    assert "| vtnet † | 1 |" in table and "on 1,280 (state, target) samples" in table
+    did = [r["did"] for r in json.loads((pre / "provenance.json").read_text())]
+    assert did == ["resumed and finished the pre-training (1,280 samples)"]
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--stage", "pretrain", "--preset", "small"], "config field 'model': 'baseline'"),
     (["--pretrained", "{pre}", "--model", "baseline"], "config field 'pretrained'"),
