@@ -1,16 +1,16 @@
 """SAVN (Wortsman et al., CVPR 2019): self-adaptive navigation by a learned loss, MAML.
 
 Training (a stage-1 mode, `TrainConfig.savn`; presets `savn` (WE target) and `dsavn`
-(detections); docs/savn.md): every update runs `num_envs` whole training episodes (no
-auto-reset, one batch row per episode) cut into segments of k = `savn_steps` steps. After
-each of the first `savn_inner_steps` segments that did not end its episode, the episode's
-fast weights take one SGD step (`savn_inner_lr`) on the learned interaction loss of that
-segment (`LearnedLoss`: a temporal convolution over the segment's LSTM outputs and action
-distributions, its output's L2 norm), and act with them for the rest of the episode. The
-A2C loss of the episode is taken with the weights in force at each step, and its gradient
-(`jax.grad` through the inner steps, second order unless `savn_first_order`) trains the
-initial parameters and the learned loss. At test time (`savn_policy`) the same inner
-steps run with the learned loss only.
+(detections); docs/savn.md): every update steps `num_envs` batch rows for `savn_segments`
+segments of k = `savn_steps` steps; a row whose episode ended starts a new one at the next
+segment boundary (savn_loss). After each of the first `savn_inner_steps` segments that did
+not end its episode, the episode's fast weights take one SGD step (`savn_inner_lr`) on the
+learned interaction loss of that segment (`LearnedLoss`: a temporal convolution over the
+segment's LSTM outputs and action distributions, its output's L2 norm), and act with them
+for the rest of the episode. The A2C loss of the episodes is taken with the weights in
+force at each step, and its gradient (`jax.grad` through the inner steps, second order
+unless `savn_first_order`) trains the initial parameters and the learned loss. At test
+time (`savn_policy`) the same inner steps run with the learned loss only.
 
 Fast weights (`Fast`, per batch row): every parameter of the navigation network. The
 first LSTM layer's input and recurrent kernels (most of the parameters) stay shared and
@@ -22,7 +22,7 @@ second time). All other parameters are dense per-row copies (small). Slots not y
 written are zero and add nothing, so shapes are fixed: savn_inner_steps x k slots.
 
     meta = init_meta(model, learned, cfg, scenes, key)       # {"nav": ..., "ll": ...}
-    loss, aux = savn_loss(meta, model, learned, cfg, scenes, key)
+    loss, (aux, stats, rows) = savn_loss(meta, rows, model, learned, cfg, scenes, key)
     chunk = make_savn_chunk(cfg, model, learned, optimizer)  # jitted
     policy = savn_policy(model, learned, k, inner_steps, inner_lr)
 """
@@ -177,11 +177,17 @@ def segment_row(model, shared, dense, ux, uh, v, carry, inputs, pert):
     def body(c, xs):
         g, p = xs
         h_prev = c.lstm[0][1]
-        g = g + (h_prev @ uh.T) @ v + p
+        # (h_prev . uh_j) v_j summed over slots j, as multiply-reduce: under vmap the
+        # matvecs would be batched dots of M = 1, slower on CPU
+        g = g + jnp.sum(jnp.sum(uh * h_prev, -1)[:, None] * v, 0) + p
         logits, value, c, h = model.apply(variables, g[None], _one(c), method=model.recur)
         return _unbatch(c), (logits[0], value[0], h[0], h_prev)
 
-    carry, (logits, values, h, h_prev) = jax.lax.scan(body, carry, (gates, pert))
+    if gates.shape[0] == 1:                           # one step (acting): no loop
+        carry, out = body(carry, (gates[0], pert[0]))
+        logits, values, h, h_prev = _one(out)
+    else:
+        carry, (logits, values, h, h_prev) = jax.lax.scan(body, carry, (gates, pert))
     return logits, values, h, carry, seen["x"], h_prev
 
 
@@ -195,7 +201,8 @@ def inner_row(model, learned, shared, dense, ux, uh, v, carry, inputs, ll_params
     """One row: the segment's forward pass and one SGD step (lr; only where `on`) of the
     learned loss on its fast weights, whose updates of the first LSTM layer's kernels go
     into slots slot .. slot + L - 1 -> (logits, values, carry, learned loss, new dense,
-    ux, uh, v). first_order: the step's gradient is a constant for outer gradients."""
+    ux, uh, v); where not `on` the fast weights come back unchanged. first_order: the
+    step's gradient is a constant for outer gradients."""
     L = jax.tree_util.tree_leaves(inputs)[0].shape[0]
 
     def loss_of(dense, pert):
@@ -209,9 +216,13 @@ def inner_row(model, learned, shared, dense, ux, uh, v, carry, inputs, ll_params
     sg = jax.lax.stop_gradient if first_order else (lambda t: t)
     step = lr * on.astype(v.dtype)
     dense = jax.tree_util.tree_map(lambda p, g: p - step * sg(g), dense, g_dense)
-    put = lambda buf, new: jax.lax.dynamic_update_slice_in_dim(buf, new, slot, 0)
-    ux, uh, v = put(ux, sg(x)), put(uh, sg(h_prev)), put(v, -step * sg(delta))
-    return logits, values, carry_out, ll, dense, ux, uh, v
+
+    def put(buf, new):          # slots slot .. slot + L - 1, unchanged where not `on`
+        old = jax.lax.dynamic_slice_in_dim(buf, slot, L, 0)
+        return jax.lax.dynamic_update_slice_in_dim(buf, jnp.where(on, new, old), slot, 0)
+
+    return (logits, values, carry_out, ll, dense, put(ux, sg(x)), put(uh, sg(h_prev)),
+            put(v, -lr * sg(delta)))
 
 
 def _v_segment(model):
@@ -284,6 +295,18 @@ def train_env_params(cfg) -> env.EnvParams:
                          step_caps=(cap,) * 4)
 
 
+def unrolled(body, carry, xs):
+    """jax.lax.scan(body, carry, xs) written out (a Python loop): under the second-order
+    gradient XLA keeps each segment's residuals as they are instead of stacking them into
+    loop buffers: 1.5x the real env-steps/s of the scan, a ~5x longer compile
+    (docs/savn.md, speed)."""
+    outs = []
+    for i in range(xs.shape[0]):
+        carry, y = body(carry, xs[i])
+        outs.append(y)
+    return carry, jax.tree_util.tree_map(lambda *a: jnp.stack(a), *outs)
+
+
 def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: bool = False):
     """The meta-objective of one update: every row stepped for savn_segments segments of
     k steps, episodes refilled at segment boundaries -> (A2C loss over the valid steps,
@@ -308,7 +331,7 @@ def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: boo
     params_env = train_env_params(cfg)
     nav = meta["nav"]
     shared, _ = split_params(nav)
-    fresh_fast = init_fast(nav, N, cfg.savn_inner_steps * k)
+    fresh_dense = tile(split_params(nav)[1], N)
     v_reset = jax.vmap(env.reset, in_axes=(0, None, None))
     v_step = jax.vmap(env.step_env, in_axes=(0, 0, None, None))
     v_observe = jax.vmap(env.observe, in_axes=(0, None))
@@ -328,7 +351,9 @@ def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: boo
         _, fresh_state = v_reset(jax.random.split(k_reset, N), scenes, params_env)
         state = where_rows(new, fresh_state, state)
         lstm = reset_carry(lstm, new)
-        fast = where_rows(new, fresh_fast, fast)
+        # (a slot whose v is zero adds nothing: ux, uh of the last episode may stay)
+        fast = Fast(where_rows(new, fresh_dense, fast.dense), fast.ux, fast.uh,
+                    fast.v * (~new).astype(fast.v.dtype)[:, None, None])
         updates = jnp.where(new, 0, updates)
         ep_return = jnp.where(new, 0.0, ep_return)
         f_sg, lstm_in = sg(fast), lstm
@@ -365,7 +390,7 @@ def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: boo
         logits, values, lstm, ll, dense, ux, uh, v = v_inner(
             shared, fast.dense, fast.ux, fast.uh, fast.v, lstm, seg, meta["ll"],
             cfg.savn_inner_lr, jnp.minimum(updates, cfg.savn_inner_steps - 1) * k, on)
-        fast = where_rows(on, Fast(dense, ux, uh, v), fast)
+        fast = Fast(dense, ux, uh, v)
         out = (jnp.swapaxes(logits, 0, 1), jnp.swapaxes(values, 0, 1), action, reward, done,
                valid)
         if trace:
@@ -377,7 +402,7 @@ def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: boo
 
     start = (rows.env_state, rows.lstm, fast_over(nav, rows.delta), rows.updates,
              rows.running, rows.ep_return, EpisodeStats.zeros(), jnp.zeros(2))
-    (state, lstm, fast, updates, running, ep_return, stats, ll_sum), outs = jax.lax.scan(
+    (state, lstm, fast, updates, running, ep_return, stats, ll_sum), outs = unrolled(
         segment, start, jax.random.split(key, U))
     logits, values, action, reward, done, valid = (
         x.reshape((U * k,) + x.shape[2:]) for x in outs[:6])          # (T, N, ...)
@@ -503,7 +528,7 @@ def savn_policy(model, learned: LearnedLoss, k: int, inner_steps: int, inner_lr:
             *_, dense, ux, uh, v = v_inner(shared, fast.dense, fast.ux, fast.uh, fast.v,
                                            seg_lstm, seg_inputs, params["ll"], inner_lr,
                                            jnp.minimum(updates, inner_steps - 1) * k, on)
-            return where_rows(on, Fast(dense, ux, uh, v), fast)
+            return Fast(dense, ux, uh, v)                 # unchanged where not `on`
 
         if inner_steps > 0:
             fast = jax.lax.cond(on.any(), inner, lambda f: f, fast)
