@@ -25,6 +25,23 @@ row. On CPU, devices beyond one are forced host devices: the script sets
 XLA_FLAGS=--xla_force_host_platform_device_count=max(--devices) before importing jax,
 and the forced devices share the machine's cores (no faster than one device there).
 
+SAVN (--savn also | first-order; training/savn.py, docs/savn.md). After each model's row, a
+row of SAVN training of that model: its env_steps_per_s counts the env steps the episodes
+really took (a row whose episode ended idles to the next segment boundary, where it
+starts a new one), slot_steps_per_s every row step, real_fraction the share of real ones,
+ratio_to_base the real env-steps/s over the base model's (the plain A2C row, timed again
+after the SAVN rows, best of all its runs kept: every step of A2C is real). One untimed
+chunk runs first so that the timed ones start with episodes running in the rows.
+--savn-segments U [U ...] times a row per savn_segments. How much of SAVN's time is idle
+depends on how long its episodes are: a fresh policy says Done after about 6.5 steps, a
+trained agent walks 15-18. --params-from RUN_DIR [RUN_DIR ...] times each run's model at
+its widths on its training rooms from its best-on-val parameters instead of the presets
+(a plain run: its network, SAVN's learned loss fresh; a SAVN run: both; the base model's
+row gets the same network):
+
+    python benchmarks/train_throughput.py --num-envs 64 --updates-per-chunk 2 --repeats 3 \
+        --savn also --params-from runs/dsavn runs/savn
+
 Scenes. The benchmark does not build the `paper` scene preset (minutes, > 1 GB): it loads
 the `tiny` preset once (cached after the first ~20 s build) and swaps in the feature
 projections of each training preset's scene preset (`scenes.synthetic.builder.feature_bases`: the
@@ -71,10 +88,12 @@ of timing the two in turn (VTNet at small widths: docs/vtnet.md).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
 import time
+from pathlib import Path
 
 
 def _force_host_devices(argv: list[str]) -> None:
@@ -174,17 +193,27 @@ def scratch_mb(compiled) -> float:
     return round(compiled.memory_analysis().temp_size_in_bytes / 1e6, 1)
 
 
+def row_config(preset: str, trained: "Trained | None" = None, **over):
+    """The config of a row: the preset's, or a trained run's (its model and widths) with
+    savn False, fields replaced."""
+    if trained is None:
+        return get_config(preset, **over)
+    return dataclasses.replace(trained.cfg, **{"savn": False, **over}).validate()
+
+
 def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
              rollout_len: int | None, repeats: int, devices: int = 1, seeds: int = 1,
-             dtype: str = "float32") -> dict:
+             dtype: str = "float32", trained: "Trained | None" = None) -> dict:
     over = dict(model=model_name, num_envs=num_envs, updates_per_chunk=updates, dtype=dtype)
     if rollout_len:
         over["rollout_len"] = rollout_len
-    cfg = get_config(preset, **over)
+    cfg = row_config(preset, trained, **over)
     model = build_model(cfg, scenes)
     optimizer = make_optimizer(cfg)
     runners = [init_runner(cfg, model, optimizer, scenes, jax.random.PRNGKey(cfg.seed + i))
                for i in range(seeds)]
+    if trained is not None:            # the run's parameters (its navigation network)
+        runners = [r.replace(params=trained.nav) for r in runners]
     runner = (jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *runners) if seeds > 1
               else runners[0])
     mesh = scale.make_mesh(devices)
@@ -201,12 +230,15 @@ def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
     compiled = lowered.compile()
     compile_s = time.perf_counter() - t0
 
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(runner, scenes))
-        best = min(best, time.perf_counter() - t0)
+    def timed(repeats: int) -> float:
+        best = float("inf")
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(compiled(runner, scenes))
+            best = min(best, time.perf_counter() - t0)
+        return best
 
+    best = timed(repeats)
     steps = cfg.updates_per_chunk * cfg.num_envs * cfg.rollout_len * seeds
     flops = scan_aware_flops(traced.jaxpr, _flops(lowered.cost_analysis()))
     raw = _flops(compiled.cost_analysis())
@@ -218,41 +250,85 @@ def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
             "flops_per_env_step": round(flops / steps), "scratch_mb": scratch_mb(compiled),
             # table only (not in the JSON line)
             "_raw_flops_per_env_step": raw / steps, "_run_s": best, "_steps": steps,
-            "_rollout_len": cfg.rollout_len}
+            "_rollout_len": cfg.rollout_len, "_timed": timed}
+
+
+def retime(row: dict, repeats: int) -> None:
+    """Time a row's compiled chunk again (after a SAVN row, on a shared machine) and keep
+    the best of all its runs."""
+    best = min(row["_run_s"], row["_timed"](repeats))
+    row.update(_run_s=best, env_steps_per_s=round(row["_steps"] / best, 1),
+               gflops_per_s=round(row["flops_per_env_step"] * row["_steps"] / best / 1e9, 2))
 
 
 def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
-                  repeats: int, first_order: bool = False) -> dict:
-    """SAVN training (training/savn.py) at the preset's widths: env-steps/s of the jitted
-    chunk, counting the env steps the episodes really took (they end at Done or the
-    30-step cap; the chunk steps every episode to the cap, frozen after its end) and the
-    episode slots (num_envs x episode_cap per update) apart."""
+                  repeats: int, first_order: bool = False, trained: "Trained | None" = None,
+                  segments: int | None = None) -> dict:
+    """SAVN training (training/savn.py) at the preset's (or the trained run's) widths:
+    env-steps/s of the jitted chunk, counting the env steps the episodes really took
+    (env_steps_real; a row whose episode ended idles, masked, to the next segment boundary,
+    where it starts a new episode) and the row steps (num_envs x savn_segments x
+    savn_steps per update) apart. One untimed chunk first, so that the timed chunks start
+    with episodes running in the rows as in a run; every timed run starts from that runner.
+    `trained`: start from its parameters (a SAVN run's {"nav", "ll"}, a plain run's network
+    with a fresh learned loss), so that the episodes are as long as its agent's."""
     from orgnav_jax.training import savn
-    cfg = get_config(preset, model=model_name, num_envs=num_envs, updates_per_chunk=updates,
-                     savn=True, savn_first_order=first_order)
+    over = dict(model=model_name, num_envs=num_envs, updates_per_chunk=updates, savn=True,
+                savn_first_order=first_order)
+    if segments:
+        over["savn_segments"] = segments
+    cfg = row_config(preset, trained, **over)
     model = build_model(cfg, scenes)
     optimizer = make_optimizer(cfg)
     learned = savn.build_learned_loss()
     runner = savn.init_savn_runner(cfg, model, learned, optimizer, scenes,
                                    jax.random.PRNGKey(cfg.seed))
+    if trained is not None:
+        params = {"nav": trained.nav, "ll": trained.ll or runner.params["ll"]}
+        k_rows = jax.random.fold_in(runner.key, 1)
+        runner = runner.replace(params=params, opt_state=optimizer.init(params),
+                                rows=savn.init_rows(cfg, model, trained.nav, scenes, k_rows))
     chunk = savn.make_savn_chunk(cfg, model, learned, optimizer)
     t0 = time.perf_counter()
     compiled = chunk.trace(runner, scenes).lower().compile()
     compile_s = time.perf_counter() - t0
-    best, real = float("inf"), 0.0
+    runner, _ = jax.block_until_ready(compiled(runner, scenes))       # rows mid-episode
+    best, metrics = float("inf"), None
     for _ in range(repeats):
         t0 = time.perf_counter()
-        _, metrics = jax.block_until_ready(compiled(runner, scenes))
+        _, m = jax.block_until_ready(compiled(runner, scenes))
         dt = time.perf_counter() - t0
         if dt < best:
-            best, real = dt, float(metrics["env_steps_real"])
-    slots = cfg.updates_per_chunk * cfg.num_envs * cfg.episode_cap
+            best, metrics = dt, m
+    real = float(metrics["env_steps_real"])
+    slots = cfg.updates_per_chunk * cfg.steps_per_update
     return {"preset": preset, "model": f"{model_name}+savn" + ("-fo" if first_order else ""),
-            "num_envs": num_envs, "env_steps_per_s": round(real / best, 1),
-            "slot_steps_per_s": round(slots / best, 1), "compile_s": round(compile_s, 2),
-            "scratch_mb": scratch_mb(compiled),
-            "mean_episode_steps": round(real / (cfg.updates_per_chunk * cfg.num_envs), 2),
-            "_run_s": best}
+            "num_envs": num_envs, "savn_segments": cfg.savn_segments,
+            "env_steps_per_s": round(real / best, 1),
+            "slot_steps_per_s": round(slots / best, 1), "real_fraction": round(real / slots, 3),
+            "compile_s": round(compile_s, 2), "scratch_mb": scratch_mb(compiled),
+            "mean_episode_steps": round(float(metrics["length"]) /
+                                        max(float(metrics["episodes"]), 1.0), 2),
+            "trained": trained.label if trained else None, "_run_s": best}
+
+
+@dataclasses.dataclass
+class Trained:
+    """A training run's best-on-val parameters (--params-from): its config, its network's
+    parameters and, for a SAVN run, its learned loss's; scenes: its training rooms."""
+    label: str
+    cfg: object
+    nav: object
+    ll: object
+    scenes: object
+
+
+def load_trained(run_dir: str) -> Trained:
+    from orgnav_jax.training import runs
+    model, params, cfg = runs.load_run_model(run_dir, best=True)
+    scenes = runs.scenes_for(cfg).split_view("train").to_device()
+    nav, ll = (params["nav"], params["ll"]) if cfg.savn else (params, None)
+    return Trained(Path(run_dir).name, cfg, nav, ll, scenes)
 
 
 def matmul_peak_gflops(n: int = 2048, repeats: int = 8) -> float:
@@ -299,6 +375,16 @@ def main() -> None:
                     help="also time SAVN training of each model (training/savn.py; "
                          "first-order: both MAML orders); env-steps/s counts the steps the "
                          "episodes really took (docs/savn.md)")
+    ap.add_argument("--savn-segments", type=int, nargs="+", default=[0],
+                    help="SAVN rows: segments per update (savn_segments; 0: the config's; "
+                         "a row for each)")
+    ap.add_argument("--params-from", nargs="+", default=[], metavar="RUN_DIR",
+                    help="time from trained runs' best-on-val parameters instead of the "
+                         "presets: each run's model, widths and training rooms (a plain "
+                         "run: its network, SAVN's learned loss fresh; a SAVN run: both; "
+                         "the base model's row gets its network), so that SAVN's episodes "
+                         "are as long as a trained agent's (--models and --presets are "
+                         "then not used)")
     args = ap.parse_args()
     bad = sorted(set(args.models) - set(ENCODERS))
     if bad:
@@ -312,6 +398,11 @@ def main() -> None:
             or min(args.devices) < 1 or min(args.seeds) < 1:
         ap.error("--num-envs, --updates-per-chunk, --repeats, --devices and --seeds must "
                  "be >= 1")
+    if min(args.savn_segments) < 0:
+        ap.error("--savn-segments must be >= 0 (0: the config's)")
+    for run in args.params_from:
+        if not (Path(run) / "config.json").is_file():
+            ap.error(f"--params-from {run}: no config.json (not a training run directory)")
     for d in args.devices:
         if any(n % d for n in args.num_envs):
             ap.error(f"--num-envs {args.num_envs} must divide by every --devices ({d})")
@@ -332,14 +423,21 @@ def main() -> None:
             f"{'GFLOP/s':>8} {'% peak':>6}")
     print(head + "\n" + "-" * len(head), flush=True)
     rows = []
-    for preset in args.presets:
-        scenes = bench_scenes(base, preset)
-        for model_name in args.models:
+    if args.params_from:          # (label, scenes, [(model, trained run)])
+        sources = []
+        for run in args.params_from:
+            t = load_trained(run)
+            sources.append((t.label, t.scenes, [(t.cfg.model, t)]))
+    else:
+        sources = [(preset, bench_scenes(base, preset), [(m, None) for m in args.models])
+                   for preset in args.presets]
+    for preset, scenes, models in sources:
+        for model_name, trained in models:
             for n, d, seeds, dtype in [(n, d, s, t) for t in args.dtype
                                        for d in args.devices for s in args.seeds
                                        for n in args.num_envs]:
                 r = time_row(preset, model_name, n, scenes, args.updates_per_chunk,
-                             args.rollout_len, args.repeats, d, seeds, dtype)
+                             args.rollout_len, args.repeats, d, seeds, dtype, trained)
                 rows.append(r)
                 print(f"{preset:6} {model_name:9} {d:2d} {seeds:2d} {dtype:8} {n:4d} "
                       f"{r['_rollout_len']:3d} "
@@ -348,19 +446,26 @@ def main() -> None:
                       f"{r['_raw_flops_per_env_step'] / 1e6:8.2f} {r['gflops_per_s']:8.2f} "
                       f"{100 * r['gflops_per_s'] / peak:6.1f}", flush=True)
                 if args.savn != "none" and d == 1 and seeds == 1 and dtype == "float32":
-                    for fo in (False, True)[:1 + (args.savn == "first-order")]:
-                        sv = time_savn_row(preset, model_name, n, scenes,
-                                           args.updates_per_chunk, args.repeats, fo)
+                    savn_rows = [time_savn_row(preset, model_name, n, scenes,
+                                               args.updates_per_chunk, args.repeats, fo,
+                                               trained, u)
+                                 for fo in (False, True)[:1 + (args.savn == "first-order")]
+                                 for u in args.savn_segments]
+                    retime(r, args.repeats)      # the base model again: best of both
+                    for sv in savn_rows:
+                        sv["ratio_to_base"] = round(sv["env_steps_per_s"] /
+                                                    r["env_steps_per_s"], 3)
                         rows.append(sv)
-                        print(f"{preset:6} {sv['model']:15} N={n:<4d} compile "
-                              f"{sv['compile_s']:.1f} s, run {sv['_run_s']:.3f} s: "
-                              f"{sv['env_steps_per_s']:.0f} env-steps/s "
-                              f"({sv['env_steps_per_s'] / r['env_steps_per_s']:.2f} of "
-                              f"{model_name}; {sv['slot_steps_per_s']:.0f} episode-slot "
-                              f"steps/s, {sv['mean_episode_steps']} steps per episode; "
-                              f"XLA scratch {sv['scratch_mb']:.0f} MB against "
-                              f"{r['scratch_mb']:.0f} MB)",
-                              flush=True)
+                        print(f"{preset:6} {sv['model']:15} N={n:<4d} U={sv['savn_segments']}"
+                              f" compile {sv['compile_s']:.1f} s, run {sv['_run_s']:.3f} s: "
+                              f"{sv['env_steps_per_s']:.0f} real env-steps/s "
+                              f"({sv['ratio_to_base']:.2f} of {model_name}'s "
+                              f"{r['env_steps_per_s']:.0f}, best of its runs before and "
+                              f"after); {sv['slot_steps_per_s']:.0f} row steps/s, "
+                              f"{sv['real_fraction']:.2f} of them real, "
+                              f"{sv['mean_episode_steps']} steps per finished episode; XLA "
+                              f"scratch {sv['scratch_mb']:.0f} MB against "
+                              f"{r['scratch_mb']:.0f} MB)", flush=True)
     print("D: devices (env axis sharded); S: seeds in one program; steps: env-steps per "
           "chunk (all seeds); MFLOP/step: scan-aware count; xla raw: "
           "compiled.cost_analysis() / env-steps (scan bodies counted once; per device when "
