@@ -292,8 +292,10 @@ def main(argv: list[str] | None = None) -> dict:
     tpn_fields = pipeline_tpn_fields(args) if pipeline else {}      # before any work
     cfg = nav_config(args, processes=start_processes(args))
     seeds = f", seeds {' '.join(map(str, args.seeds))} in one program" if args.seeds else ""
-    announce(cfg, f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {cfg.num_envs} envs "
-                  f"x {cfg.rollout_len} steps, {cfg.total_env_steps:,} env steps{seeds}")
+    shape = (f"SAVN, {cfg.num_envs} rows x {cfg.savn_segments} segments x {cfg.savn_steps} "
+             "steps" if cfg.savn else f"{cfg.num_envs} envs x {cfg.rollout_len} steps")
+    announce(cfg, f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {shape}, "
+                  f"{cfg.total_env_steps:,} env steps{seeds}")
     if args.budget and primary():
         print(BUDGETS[args.budget].describe(), file=sys.stderr, flush=True)
     if args.seeds is not None:
