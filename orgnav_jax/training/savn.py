@@ -298,8 +298,8 @@ def train_env_params(cfg) -> env.EnvParams:
 def unrolled(body, carry, xs):
     """jax.lax.scan(body, carry, xs) written out (a Python loop): under the second-order
     gradient XLA keeps each segment's residuals as they are instead of stacking them into
-    loop buffers: 1.5x the real env-steps/s of the scan, a ~5x longer compile
-    (docs/savn.md, speed)."""
+    loop buffers: 1.15-1.4x the scan's speed, a 3-5x longer compile (docs/savn.md,
+    speed)."""
     outs = []
     for i in range(xs.shape[0]):
         carry, y = body(carry, xs[i])
