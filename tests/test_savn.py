@@ -235,7 +235,7 @@ def test_the_chunk_compiles_once(rooms):
                                                      jax.tree_util.tree_leaves(runner.params)))
 
 
-REFILL = dict(num_envs=6, savn_segments=6, savn_inner_lr=3.0)
+REFILL = dict(num_envs=6, savn_segments=5, savn_inner_lr=3.0)
 
 
 def test_a_refilled_row_starts_a_new_episode_with_the_meta_weights(rooms):
