@@ -80,7 +80,7 @@ FAILURE_METRICS = (("wrong_done", "wrong Done", 100), ("timeout", "timeout", 100
                    ("revisits", "revisits/ep", 1), ("failed_moves", "failed moves/ep", 1))
 # test-time variants of a TPN row (TPNConfig fields)
 TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": "random"},
-                "tpn_cosine": {"deadlock": "cosine"},
+                "tpn_cosine": {"deadlock": "cosine", "placement": "state"},   # (release: visited only)
                 "tpn_train_mode": {"tpn_train_mode": True}}   # the release's dropout confound
 
 

@@ -14,7 +14,7 @@ from orgnav_jax import env, evaluate, evaluation
 from orgnav_jax import scenes as scenes_mod
 from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.models import model_inputs
-from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config
+from orgnav_jax.tpn.config import TPN_LR, get_tpn_config, load_tpn_config
 from orgnav_jax.tpn.fast_weights import policy_ce, sgd_step, split_scope, split_step
 from orgnav_jax.tpn.test_time import build_tpn, init_tpn_params, load_tpn_policy
 from orgnav_jax.tpn.stage2 import collect, train_tpn, tpn_loss
@@ -37,7 +37,10 @@ def base_run(tmp_path_factory, tiny_scenes):
 
 
 def tpn_cfg(base_run, run_dir, **kw):
+    # placement state, optim ours: the mechanics these tests pin (the release's placement
+    # and optimiser, the defaults, have their own tests below and in test_tpn_lowrank.py)
     fields = dict(base_dir=base_run, num_envs=8, episode_cap=16, total_episodes=8 * 2 * 3,
+                  placement="state", optim="ours",
                   updates_per_chunk=2, eval_every_chunks=1, eval_episodes_per_room_type=2,
                   checkpoint_every_chunks=1, run_dir=str(run_dir))
     return get_tpn_config(**{**fields, **kw})
@@ -216,7 +219,7 @@ def test_cli_trains_and_evaluates_with_tpn(base_run, tmp_path, capsys):
     # every test-time option through the CLI, several to an evaluation (each variant is
     # a program of its own to compile; what the options do is tested in this file,
     # test_tpn_module.py and test_tpn_lowrank.py)
-    for variant in ([], ["--when", "all", "--target", "random", "--deadlock", "cosine",
+    for variant in ([], ["--when", "all", "--target", "random", "--deadlock", "cosine", "--placement", "state",
                          "--scope", "trunk", "--tpn-lr", "1e-3"],
                     ["--scope", "actor", "--tpn-train-mode", "true", "--reset-every", "0"]):
         out = tmp_path / f"{'-'.join(variant)}.json"
@@ -239,7 +242,7 @@ def test_full_preset_trains_both_stages(base_run, tmp_path):
     nav = load_config(run_dir)
     assert (nav.model, nav.il) == ("org", "deadlock")
     tpn = load_tpn_config(run_dir / "tpn")
-    assert tpn.base_dir == str(run_dir) and tpn.tpn_lr == 1e-3
+    assert tpn.base_dir == str(run_dir) and tpn.tpn_lr == TPN_LR
     assert summary["tpn"]["episodes"] >= 64 and (run_dir / "tpn" / "best").exists()
 
 

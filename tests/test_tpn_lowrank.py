@@ -84,7 +84,7 @@ def test_lowrank_fast_weights_equal_dense_copies(setup, test_split, name):
     model, params, tpn, tpn_params = setup(name)
     R = SLOT_BLOCK + 2                  # updates 0..R-1 fill two blocks; reset at step R
     cfg = get_tpn_config(scope="all", when="all", target="random", tpn_lr=0.05,
-                         reset_every=R).test_time()
+                         reset_every=R, placement="state").test_time()
     assert make_plan(params, "all", R).sites, "the LSTM should be low-rank here"
     pparams = {"base": params, "tpn": tpn_params}
     obs = observations(test_split, R + 2)
@@ -115,7 +115,7 @@ def test_lowrank_fast_weights_equal_dense_copies(setup, test_split, name):
 @pytest.mark.parametrize("scope", ["actor", "all"])
 def test_updates_never_leak_across_environments_or_episodes(setup, test_split, scope):
     model, params, tpn, tpn_params = setup("baseline")
-    cfg = get_tpn_config(scope=scope, tpn_lr=0.5).test_time()
+    cfg = get_tpn_config(scope=scope, tpn_lr=0.5, placement="state").test_time()
     policy = tpn_policy(model, tpn, cfg)
     pparams = {"base": params, "tpn": tpn_params}
     # env 0 is in deadlock at every step, envs 1 and 2 never are
@@ -156,7 +156,8 @@ def test_reset_every_restores_the_trained_weights(setup, test_split):
     fresh = [[True] * B] + [[False] * B] * 3
     inputs3 = model_inputs(test_split, obs[3])
     for reset_every, equal in ((3, True), (0, False)):
-        cfg = get_tpn_config(scope="all", tpn_lr=0.5, reset_every=reset_every).test_time()
+        cfg = get_tpn_config(scope="all", tpn_lr=0.5, reset_every=reset_every,
+                             placement="state").test_time()
         carries = drive(tpn_policy(model, tpn, cfg), pparams, test_split, obs, fresh)
         trained = step_probs(model, params, inputs3, carries[2].lstm)
         acted = np.asarray(carries[3].memory.prev_probs)       # softmax of step 3's logits

@@ -197,7 +197,7 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
     name = f"{nav_cfg.model}+TPN" + ("" if cfg.when == "deadlock" else f"-{cfg.when}") + \
         ("" if cfg.target == "tpn" else f"-{cfg.target}") + \
         ("-train" if cfg.tpn_train_mode else "") + \
-        ("-release-placement" if cfg.placement == "release" else "")
+        ("-state-placement" if cfg.placement == "state" else "")
     # ("-train": dropout on, the release's confound)
     return tpn_policy(model, tpn, cfg.test_time(), name,
                       float(getattr(nav_cfg, "dropout", 0.0))), \
