@@ -69,6 +69,7 @@ from pathlib import Path
 import numpy as np
 
 from orgnav_jax import api
+from orgnav_jax.train import PRETRAIN_PIPELINES
 from orgnav_jax.errors import INT32_MAX, is_int, read_json, run_cli, shown
 from orgnav_jax.training.run_dir import RunLock, is_run_dir
 from orgnav_jax.training.config import TABLE_ROWS, VTNET_PRESETS, add_config_arguments, \
@@ -87,8 +88,8 @@ TPN_VARIANTS = {"tpn": {}, "tpn_all": {"when": "all"}, "tpn_random": {"target": 
 # the rows: the Tables' presets and VTNet's (issue 43)
 ROWS = {**TABLE_ROWS, **VTNET_PRESETS}
 # rows whose A2C run starts from a supervised pre-training of the seed, as `--preset
-# vtnet` does (train.py: PRETRAIN_PIPELINES), in OUT/runs/<row>-pretrain-s<seed>
-PRETRAIN_ROWS = ("vtnet",)
+# vtnet` does: the CLI's list (train.PRETRAIN_PIPELINES), in OUT/runs/<row>-pretrain-s<seed>
+PRETRAIN_ROWS = PRETRAIN_PIPELINES
 
 
 SPEC_KEYS = {"out": str, "rows": list, "seeds": list, "config": dict, "tpn": dict}
