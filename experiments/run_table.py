@@ -61,6 +61,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -141,20 +142,28 @@ def provenance(top: Path | None = None) -> dict:
     """What made a run: the code version (of the checkout `top`, default this one), the
     machine, the time. "uncommitted_changes": tracked code under orgnav_jax/ or
     experiments/ differs from the commit; the tables' own files (experiments/results/,
-    which a running campaign rewrites) do not count."""
+    which a running campaign rewrites) do not count. A copy without git (a lent GPU
+    machine gets the working tree alone) is told its "code" by ORGNAV_CODE, which the
+    launcher sets to the commit of the clean tree it copied. "device": what JAX ran on."""
     top = top or Path(__file__).resolve().parents[1]
-    git = lambda *a: subprocess.run(["git", *a], cwd=top, capture_output=True,
-                                    text=True).stdout.strip()
+    def git(*args: str) -> str:
+        try:
+            return subprocess.run(["git", *args], cwd=top, capture_output=True,
+                                  text=True).stdout.strip()
+        except FileNotFoundError:                  # no git on the machine
+            return ""
     cpu = next((line.split(":", 1)[1].strip() for line in
                 Path("/proc/cpuinfo").read_text().splitlines()
                 if line.startswith("model name")), platform.processor()) \
         if Path("/proc/cpuinfo").exists() else platform.processor()
     import jax
-    return {"code": git("rev-parse", "HEAD") or "unknown",
+    device = jax.devices()[0]
+    return {"code": os.environ.get("ORGNAV_CODE") or git("rev-parse", "HEAD") or "unknown",
             "uncommitted_changes": bool(git("status", "--porcelain", "--untracked-files=no",
                                             "--", "orgnav_jax", "experiments",
                                             ":(exclude)experiments/results")),
-            "cpu": cpu, "jax": jax.__version__, "python": platform.python_version(),
+            "cpu": cpu, "device": f"{device.platform} {device.device_kind}",
+            "jax": jax.__version__, "python": platform.python_version(),
             "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
 
 
