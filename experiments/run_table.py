@@ -142,9 +142,10 @@ def provenance(top: Path | None = None) -> dict:
     """What made a run: the code version (of the checkout `top`, default this one), the
     machine, the time. "uncommitted_changes": tracked code under orgnav_jax/ or
     experiments/ differs from the commit; the tables' own files (experiments/results/,
-    which a running campaign rewrites) do not count. A copy without git (a lent GPU
-    machine gets the working tree alone) is told its "code" by ORGNAV_CODE, which the
-    launcher sets to the commit of the clean tree it copied. "device": what JAX ran on."""
+    which a running campaign rewrites) do not count, nor do file modes (a copied tree
+    can lose an executable bit: probably why table_5m's GPU rows say True). "code":
+    ORGNAV_CODE where set (a lent GPU machine's copy of the tree; the launcher sets it to
+    the commit of the clean tree it copied), else HEAD. "device": what JAX ran on."""
     top = top or Path(__file__).resolve().parents[1]
     def git(*args: str) -> str:
         try:
@@ -159,7 +160,8 @@ def provenance(top: Path | None = None) -> dict:
     import jax
     device = jax.devices()[0]
     return {"code": os.environ.get("ORGNAV_CODE") or git("rev-parse", "HEAD") or "unknown",
-            "uncommitted_changes": bool(git("status", "--porcelain", "--untracked-files=no",
+            "uncommitted_changes": bool(git("-c", "core.fileMode=false", "status",
+                                            "--porcelain", "--untracked-files=no",
                                             "--", "orgnav_jax", "experiments",
                                             ":(exclude)experiments/results")),
             "cpu": cpu, "device": f"{device.platform} {device.device_kind}",
