@@ -90,6 +90,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import sys
 import time
@@ -130,12 +131,15 @@ from orgnav_jax.training.update import (  # noqa: E402
 
 # --------------------------------------------------------------------------- FLOPs
 def _flops(cost) -> float:
-    """'flops' from a cost analysis: a dict (jax >= 0.4.30) or a list of dicts (older)."""
+    """'flops' from a cost analysis: a dict (jax >= 0.4.30) or a list of dicts (older);
+    a value that is not a finite count (XLA's GPU cost analysis gave NaN on an H200,
+    jax 0.11.2: the FLOP columns are then undercounted, not an error) counts as 0."""
     if cost is None:
         return float("nan")
     if isinstance(cost, (list, tuple)):
-        return float(sum(c.get("flops", 0.0) for c in cost))
-    return float(cost.get("flops", 0.0))
+        return float(sum(_flops(c) for c in cost))
+    f = float(cost.get("flops", 0.0))
+    return f if math.isfinite(f) and f >= 0 else 0.0
 
 
 def _sub_jaxprs(eqn):
