@@ -300,6 +300,26 @@ def compact(results: dict, episodes: dict, lr: str, rows: list[str] | None = Non
     return "\n".join(lines) + "\n"
 
 
+def before_after(out: Path, before: Path) -> str:
+    """Markdown, one line per claim measured in both tables: success before -> after
+    (mean [95% t interval], seeds), the verdict's level, and "verdict changed" where the
+    level (every seed / on average / does not hold) differs. Claims match by name."""
+    def measured(table_dir: Path) -> dict[str, dict]:
+        spec, results, episodes = read_table_dir(table_dir)
+        return {c["claim"]: c["success"] for c in
+                claim_rows(results, episodes, lr_tag(spec), spec["rows"])
+                if c["success"] is not None}
+    old, new = measured(before), measured(out)
+    level = lambda v: v.split(" (")[0]
+    text = lambda s: (f"{s['mean']:+.1f} {interval_text(s['interval'])}, {s['verdict']}"
+                      + ("" if " of " in s["verdict"] else f" ({len(s['seeds'])} seeds)"))
+    return "\n".join(
+        f"- {name}: {text(old[name])} -> {text(s)}"
+        + ("; **verdict changed**" if level(old[name]["verdict"]) != level(s["verdict"])
+           else "")
+        for name, s in new.items() if name in old) + "\n"
+
+
 def read_results_doc(path: Path) -> dict:
     """A results JSON as api.evaluate writes it, checked: an object with an `overall`
     object of numbers; when it keeps `per_episode` outcomes, the summary recomputed from
@@ -422,6 +442,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(anchored small objects, anchors, others), e.g. org baseline")
     ap.add_argument("--compact", action="store_true",
                     help="print the README's short claims table (measured claims only)")
+    ap.add_argument("--before", metavar="TABLE", default=None,
+                    help="print each claim measured in both tables as before (TABLE) -> "
+                         "after (this table), e.g. experiments/results/before_parity/table_5m")
     ap.add_argument("--check", action="store_true",
                     help="recompute results.json, table.md and claims.md from the runs' "
                          "files; exit 1 on any difference, write nothing")
@@ -434,6 +457,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.compact:
         spec, results, episodes = read_table_dir(out)
         print(compact(results, episodes, lr_tag(spec), spec["rows"]))
+        return 0
+    if args.before:
+        read_spec_of(Path(args.before))
+        print(before_after(out, Path(args.before)), end="")
         return 0
     if args.check:
         bad = check(out)

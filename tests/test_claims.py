@@ -110,6 +110,29 @@ def test_claims_table_check_and_tampering(claims, table_dir, capsys):
         claims.main(["--check", str(table_dir)])
 
 
+def test_before_after_lists_claims_of_both_tables_and_changed_verdicts(claims, table_dir,
+                                                                          tmp_path_factory,
+                                                                          capsys):
+    """--before: a line per claim measured in both tables; a changed verdict level is
+    marked, an unchanged one is not."""
+    after = tmp_path_factory.mktemp("after")
+    shutil.copytree(table_dir, after, dirs_exist_ok=True)
+    rng = np.random.default_rng(2)
+    for seed, p in enumerate([0.45, 0.55, 0.35]):           # IL now below the Baseline
+        success = np.zeros(200, bool)
+        success[rng.permutation(200)[:int(p * 200)]] = True
+        (after / "runs" / f"il-s{seed}" / "test_results.json").write_text(
+            json.dumps(fake_results(success, rng)))
+    assert claims.main([str(after), "--before", str(table_dir)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    il = next(x for x in lines if x.startswith("- IL > Baseline: "))
+    assert "+10.0 [" in il and "holds in every seed (3 seeds) -> -5.0 [" in il, il
+    assert il.endswith("does not hold (3 seeds); **verdict changed**"), il
+    org = next(x for x in lines if x.startswith("- ORG > Baseline: "))
+    assert "verdict changed" not in org and org.count("holds on average (2 of 3 seeds)") == 2
+    assert not any("ORG + IL > ORG" in x for x in lines)    # measured in neither
+
+
 def test_per_category_groups_and_table(claims, table_dir):
     groups = claims.category_groups()
     assert "Toaster" in groups["anchored"] and "Laptop" in groups["anchored"]
