@@ -1,0 +1,100 @@
+"""Pack the runs of run.sh's streams (/tmp/g/out*/runs) into OUT_DIR, for a transfer of at
+most 8 files of 16 MB (63 MB in all):
+
+- small.tgz: every run's small files (config, metrics, test results, provenance; no
+  checkpoints, TensorBoard logs or episode caches), the streams' logs and tables;
+- best_ROW.tar: the best-on-val checkpoints of a finished row that a TPN row of a stream's
+  spec builds on (ROW+... in its rows), so its TPN rows can run elsewhere;
+- part_ROW.tar.N: the latest checkpoints of the most advanced unfinished row, to resume
+  it elsewhere (`cat part_ROW.tar.* | tar x`), if they fit.
+
+usage: python experiments/gpu_streams/pack.py OUT_DIR
+"""
+from __future__ import annotations
+
+import io
+import json
+import sys
+import tarfile
+from pathlib import Path
+
+STREAMS = Path("/tmp/g")
+FILE_LIMIT, TOTAL_LIMIT, MAX_FILES = 15_900_000, 63_000_000, 8
+BIG = {"checkpoints", "best", "tb"}
+
+
+def latest(d: Path) -> Path | None:
+    """The newest step directory of a checkpoint directory (None: none)."""
+    steps = [p for p in d.iterdir() if p.name.isdigit()] if d.is_dir() else []
+    return max(steps, key=lambda p: int(p.name)) if steps else None
+
+
+def tar_bytes(items: list[tuple[Path, str]]) -> bytes:
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as t:
+        for path, arcname in items:
+            t.add(path, arcname)
+    return buf.getvalue()
+
+
+def env_steps(run: Path) -> int:
+    """The last metrics record's env_steps (0: none yet)."""
+    try:
+        return json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])["env_steps"]
+    except (OSError, IndexError, KeyError, ValueError):
+        return 0
+
+
+def main(out: Path) -> None:
+    runs = sorted(r for o in STREAMS.glob("out*") for r in (o / "runs").glob("*")
+                  if r.is_dir())
+    with tarfile.open(out / "small.tgz", "w:gz") as t:
+        for run in runs:
+            for f in run.rglob("*"):
+                rel = f.relative_to(run)
+                small = not set(rel.parts) & BIG and not f.name.startswith(("episodes-", "."))
+                if f.is_file() and small:
+                    t.add(f, f"runs/{run.name}/{rel}")
+        for f in [*STREAMS.glob("log*.txt"), *STREAMS.glob("out*/table.md"),
+                  *STREAMS.glob("out*/results.json")]:
+            t.add(f, f"meta/{f.parent.name}-{f.name}")
+    files, total = 2, (out / "small.tgz").stat().st_size      # small.tgz and log.txt
+
+    def write(name: str, data: bytes) -> bool:
+        nonlocal files, total
+        parts = [data[i:i + FILE_LIMIT] for i in range(0, len(data), FILE_LIMIT)]
+        if files + len(parts) > MAX_FILES or total + len(data) > TOTAL_LIMIT:
+            print(f"{name}: {len(data):,} bytes do not fit; left out")
+            return False
+        for i, part in enumerate(parts):
+            (out / (name if len(parts) == 1 else f"{name}.{i}")).write_bytes(part)
+        files, total = files + len(parts), total + len(data)
+        print(f"{name}: {len(data):,} bytes in {len(parts)} file(s)")
+        return True
+
+    by_row: dict[str, list[Path]] = {}
+    for run in runs:
+        row, _, seed = run.name.rpartition("-s")
+        if seed.isdigit() and "pretrain" not in row:
+            by_row.setdefault(row, []).append(run)
+    finished = {row for row, rs in by_row.items()
+                if all((r / "test_results.json").exists() for r in rs)}
+    specs = [json.loads(p.read_text()) for p in STREAMS.glob("spec*.json")]
+    bases = [row for spec in specs for row in dict.fromkeys(
+        r.partition("+")[0] for r in spec["rows"] if "+" in r)]
+    for row in bases:
+        if row in finished:
+            write(f"best_{row}.tar", tar_bytes([
+                (latest(r / "best"), f"runs/{r.name}/best/{latest(r / 'best').name}")
+                for r in by_row[row]]))
+    unfinished = [(min(map(env_steps, rs)), row) for row, rs in by_row.items()
+                  if row not in finished and all(latest(r / "checkpoints") for r in rs)]
+    for _, row in sorted(unfinished, reverse=True)[:1]:
+        write(f"part_{row}.tar", tar_bytes([
+            (latest(r / sub), f"runs/{r.name}/{sub}/{latest(r / sub).name}")
+            for r in by_row[row] for sub in ("checkpoints", "best") if latest(r / sub)]))
+    print(f"{files} files, {total:,} bytes")
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]))

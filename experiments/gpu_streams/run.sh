@@ -1,0 +1,56 @@
+#!/bin/bash
+# Train rows of a table spec as parallel streams on one GPU: each stream is its own
+# run_table.py process and out dir (/tmp/g/outN), all stopped at DEADLINE s, then packed
+# into OUT_DIR by pack.py (the runs' small files, best checkpoints of finished TPN bases,
+# the most advanced unfinished row's checkpoints). How the 5 M table's GPU rows were made
+# (docs/results.md); unpack with: tar xzf OUT_DIR/small.tgz -C experiments/results/table_5m,
+# tar xf OUT_DIR/best_ROW.tar -C experiments/results/table_5m, then run_table.py --only
+# ROWS rebuilds the table files from them.
+# usage: OUT=OUT_DIR [SPEC=spec.json] bash experiments/gpu_streams/run.sh DEADLINE_S COMMIT
+#            "rows of stream 1" "rows of stream 2" ...   (COMMIT: of the clean tree copied)
+set -u
+T0=$(date +%s); DL=$1; export ORGNAV_CODE=$2; shift 2
+elapsed() { echo $(( $(date +%s) - T0 )); }
+# float32 as on CPU (no TF32); each process takes GPU memory as it needs it
+export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false \
+    JAX_DEFAULT_MATMUL_PRECISION=highest
+LOG=$OUT/log.txt
+{ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; nproc
+  python3 --version; } >>"$LOG" 2>&1
+# .whl/ (optional, git-ignored): pure-Python wheels of the versions this project pins
+# (flax, optax, chex, orbax-checkpoint, tensorboardX) for a machine without a package
+# index; if they do not import there, the machine's own packages are used
+[ -d .whl ] && python3 -m pip install -q --no-index --no-deps --no-compile \
+    --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >>"$LOG" 2>&1
+CHECK="import jax, flax, orgnav_jax.api; print(jax.__version__, flax.__version__, jax.devices())"
+export PYTHONPATH=/tmp/site:$PWD
+if ! python3 -c "$CHECK" >>"$LOG" 2>&1; then
+  echo "carried wheels do not import; the machine's packages" >>"$LOG"
+  export PYTHONPATH=$PWD
+  python3 -c "$CHECK" >>"$LOG" 2>&1
+fi
+mkdir -p /tmp/g; i=0; pids=()
+for rows in "$@"; do                  # stream i: the spec with out /tmp/g/out$i and these rows
+  i=$((i+1))
+  python3 - "$i" "$rows" <<'PY'
+import json, os, sys
+spec = json.load(open(os.environ.get("SPEC", "experiments/tables/table_5m.json")))
+spec["out"], spec["rows"] = f"/tmp/g/out{sys.argv[1]}", sys.argv[2].split()
+json.dump(spec, open(f"/tmp/g/spec{sys.argv[1]}.json", "w"))
+PY
+  python3 experiments/run_table.py --spec /tmp/g/spec$i.json >/tmp/g/log$i.txt 2>&1 &
+  pids+=($!)
+  echo "stream $i ($rows): pid $!" >>"$LOG"
+done
+while true; do                        # until every stream ends or the deadline
+  alive=0; for p in "${pids[@]}"; do kill -0 "$p" 2>/dev/null && alive=1; done
+  [ $alive = 0 ] && break
+  [ "$(elapsed)" -ge "$DL" ] && { echo "deadline at $(elapsed) s" >>"$LOG"; break; }
+  sleep 5
+done
+for p in "${pids[@]}"; do kill -INT "$p" 2>/dev/null; done; sleep 8
+for p in "${pids[@]}"; do kill -9 "$p" 2>/dev/null; done
+nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv >>"$LOG" 2>&1
+echo "packing at $(elapsed) s" >>"$LOG"
+python3 experiments/gpu_streams/pack.py "$OUT" >>"$LOG" 2>&1
+echo "done at $(elapsed) s" >>"$LOG"
