@@ -165,9 +165,10 @@ def test_run_table_spec_is_checked(tmp_path):
             run_table.read_spec(bad)
 
 
-def test_provenance_counts_code_changes_not_the_tables_own_files(tmp_path):
+def test_provenance_counts_code_changes_not_the_tables_own_files(tmp_path, monkeypatch):
     """A run's provenance says "uncommitted_changes" for edited code, not for the result
-    files a running campaign rewrites (experiments/results/)."""
+    files a running campaign rewrites (experiments/results/) nor for a file mode lost in a
+    copy; ORGNAV_CODE names the code of a copy; "device" is what JAX runs on."""
     import subprocess
     sys.path.insert(0, str(EXPERIMENTS))
     import run_table
@@ -182,9 +183,14 @@ def test_provenance_counts_code_changes_not_the_tables_own_files(tmp_path):
     assert run_table.provenance(tmp_path)["uncommitted_changes"] is False
     (tmp_path / "experiments/results/t/table.md").write_text("b\n")
     assert run_table.provenance(tmp_path)["uncommitted_changes"] is False
+    (tmp_path / "experiments/run.py").chmod(0o755)                 # a mode, not code
+    assert run_table.provenance(tmp_path)["uncommitted_changes"] is False
     (tmp_path / "experiments/run.py").write_text("b\n")
     p = run_table.provenance(tmp_path)
     assert p["uncommitted_changes"] is True and len(p["code"]) == 40
+    assert p["device"].startswith("cpu ")
+    monkeypatch.setenv("ORGNAV_CODE", "3c69e07")
+    assert run_table.provenance(tmp_path)["code"] == "3c69e07"
 
 
 def test_committed_tables_agree_with_their_runs(claims):
