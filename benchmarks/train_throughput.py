@@ -132,14 +132,23 @@ from orgnav_jax.training.update import (  # noqa: E402
 # --------------------------------------------------------------------------- FLOPs
 def _flops(cost) -> float:
     """'flops' from a cost analysis: a dict (jax >= 0.4.30) or a list of dicts (older);
-    a value that is not a finite count (XLA's GPU cost analysis gave NaN on an H200,
-    jax 0.11.2: the FLOP columns are then undercounted, not an error) counts as 0."""
+    NaN where XLA gives none (on an H200 with jax 0.11.2 it did not: the rows then show
+    "-" for the FLOP columns instead of stopping the benchmark, time_row)."""
     if cost is None:
         return float("nan")
     if isinstance(cost, (list, tuple)):
-        return float(sum(_flops(c) for c in cost))
-    f = float(cost.get("flops", 0.0))
-    return f if math.isfinite(f) and f >= 0 else 0.0
+        return float(sum(c.get("flops", 0.0) for c in cost))
+    return float(cost.get("flops", 0.0))
+
+
+def _per_step(flops: float, steps: int, scale: float = 1.0, digits: int | None = None):
+    """flops / steps / scale rounded, or None where the count is unknown (not finite)."""
+    return round(flops / steps / scale, digits) if math.isfinite(flops) else None
+
+
+def _col(value, width: int, scale: float = 1.0) -> str:
+    """A table cell: value / scale with 2 decimals, or "-" for an unknown (None)."""
+    return f"{value / scale:{width}.2f}" if value is not None else f"{'-':>{width}}"
 
 
 def _sub_jaxprs(eqn):
@@ -250,10 +259,10 @@ def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
     return {"preset": preset, "model": model_name, "num_envs": num_envs,
             "devices": scale.mesh_size(mesh), "seeds": seeds, "dtype": dtype,
             "env_steps_per_s": round(sps, 1), "compile_s": round(compile_s, 2),
-            "gflops_per_s": round(flops / steps * sps / 1e9, 2),
-            "flops_per_env_step": round(flops / steps), "scratch_mb": scratch_mb(compiled),
+            "gflops_per_s": _per_step(flops * sps, steps, 1e9, 2),
+            "flops_per_env_step": _per_step(flops, steps), "scratch_mb": scratch_mb(compiled),
             # table only (not in the JSON line)
-            "_raw_flops_per_env_step": raw / steps, "_run_s": best, "_steps": steps,
+            "_raw_flops_per_env_step": _per_step(raw, steps), "_run_s": best, "_steps": steps,
             "_rollout_len": cfg.rollout_len, "_timed": timed}
 
 
@@ -261,8 +270,10 @@ def retime(row: dict, repeats: int) -> None:
     """Time a row's compiled chunk again (after a SAVN row, on a shared machine) and keep
     the best of all its runs."""
     best = min(row["_run_s"], row["_timed"](repeats))
+    flops = row["flops_per_env_step"]
     row.update(_run_s=best, env_steps_per_s=round(row["_steps"] / best, 1),
-               gflops_per_s=round(row["flops_per_env_step"] * row["_steps"] / best / 1e9, 2))
+               gflops_per_s=None if flops is None else round(
+                   flops * row["_steps"] / best / 1e9, 2))
 
 
 def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
@@ -446,9 +457,11 @@ def main() -> None:
                 print(f"{preset:6} {model_name:9} {d:2d} {seeds:2d} {dtype:8} {n:4d} "
                       f"{r['_rollout_len']:3d} "
                       f"{r['_steps']:6d} {r['compile_s']:9.2f} {r['_run_s']:7.3f} "
-                      f"{r['env_steps_per_s']:11.1f} {r['flops_per_env_step'] / 1e6:10.2f} "
-                      f"{r['_raw_flops_per_env_step'] / 1e6:8.2f} {r['gflops_per_s']:8.2f} "
-                      f"{100 * r['gflops_per_s'] / peak:6.1f}", flush=True)
+                      f"{r['env_steps_per_s']:11.1f} "
+                      f"{_col(r['flops_per_env_step'], 10, 1e6)} "
+                      f"{_col(r['_raw_flops_per_env_step'], 8, 1e6)} "
+                      f"{_col(r['gflops_per_s'], 8)} "
+                      f"{_col(r['gflops_per_s'], 6, peak / 100)}", flush=True)
                 if args.savn != "none" and d == 1 and seeds == 1 and dtype == "float32":
                     savn_rows = [time_savn_row(preset, model_name, n, scenes,
                                                args.updates_per_chunk, args.repeats, fo,

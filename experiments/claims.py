@@ -459,7 +459,6 @@ def main(argv: list[str] | None = None) -> int:
         print(compact(results, episodes, lr_tag(spec), spec["rows"]))
         return 0
     if args.before:
-        read_spec_of(Path(args.before))
         print(before_after(out, Path(args.before)), end="")
         return 0
     if args.check:

@@ -143,9 +143,9 @@ def provenance(top: Path | None = None) -> dict:
     machine, the time. "uncommitted_changes": tracked code under orgnav_jax/ or
     experiments/ differs from the commit; the tables' own files (experiments/results/,
     which a running campaign rewrites) do not count, nor do file modes (a copied tree
-    can lose an executable bit: probably why table_5m's GPU rows say True). "code":
-    ORGNAV_CODE where set (a lent GPU machine's copy of the tree; the launcher sets it to
-    the commit of the clean tree it copied), else HEAD. "device": what JAX ran on."""
+    can lose an executable bit). "code": ORGNAV_CODE where set (a copy of the tree on
+    another machine: experiments/gpu_streams/run.sh sets it to the commit of the clean
+    tree it copied), else HEAD. "device": what JAX ran on."""
     top = top or Path(__file__).resolve().parents[1]
     def git(*args: str) -> str:
         try:
@@ -166,7 +166,12 @@ def provenance(top: Path | None = None) -> dict:
                                             ":(exclude)experiments/results")),
             "cpu": cpu, "device": f"{device.platform} {device.device_kind}",
             "jax": jax.__version__, "python": platform.python_version(),
-            "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+            "time": now()}
+
+
+def now() -> str:
+    """The time of a provenance record: UTC, to the second, ISO 8601."""
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
 
 _STARTED: dict = {}      # provenance() when this process started: the code it runs
@@ -181,7 +186,7 @@ def record_provenance(run_dir: Path, what: str) -> None:
     sessions = read_provenance(path)
     run_dir.mkdir(parents=True, exist_ok=True)
     started = _STARTED or provenance()
-    record = dict(started, started=started["time"], time=provenance()["time"], did=what)
+    record = dict(started, started=started["time"], time=now(), did=what)
     tmp = run_dir / ".provenance.json.tmp"
     tmp.write_text(json.dumps(sessions + [record], indent=1))
     tmp.replace(path)

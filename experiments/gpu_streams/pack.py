@@ -5,8 +5,10 @@ most 8 files of 16 MB (63 MB in all):
   checkpoints, TensorBoard logs or episode caches), the streams' logs and tables;
 - best_ROW.tar: the best-on-val checkpoints of a finished row that a TPN row of a stream's
   spec builds on (ROW+... in its rows), so its TPN rows can run elsewhere;
-- part_ROW.tar.N: the latest checkpoints of the most advanced unfinished row, to resume
-  it elsewhere (`cat part_ROW.tar.* | tar x`), if they fit.
+- part_ROW.tar: the latest checkpoints of the most advanced unfinished row, to resume
+  it elsewhere, if they fit.
+
+An archive over 16 MB is split into NAME.0, NAME.1, ... (`cat NAME.* | tar x`).
 
 usage: python experiments/gpu_streams/pack.py OUT_DIR
 """
@@ -23,10 +25,14 @@ FILE_LIMIT, TOTAL_LIMIT, MAX_FILES = 15_900_000, 63_000_000, 8
 BIG = {"checkpoints", "best", "tb"}
 
 
-def latest(d: Path) -> Path | None:
-    """The newest step directory of a checkpoint directory (None: none)."""
+def newest(run: Path, sub: str) -> list[tuple[Path, str]]:
+    """[(the newest step directory of RUN/SUB, its name in the archive)], [] if none."""
+    d = run / sub
     steps = [p for p in d.iterdir() if p.name.isdigit()] if d.is_dir() else []
-    return max(steps, key=lambda p: int(p.name)) if steps else None
+    if not steps:
+        return []
+    step = max(steps, key=lambda p: int(p.name))
+    return [(step, f"runs/{run.name}/{sub}/{step.name}")]
 
 
 def tar_bytes(items: list[tuple[Path, str]]) -> bytes:
@@ -60,17 +66,16 @@ def main(out: Path) -> None:
             t.add(f, f"meta/{f.parent.name}-{f.name}")
     files, total = 2, (out / "small.tgz").stat().st_size      # small.tgz and log.txt
 
-    def write(name: str, data: bytes) -> bool:
+    def write(name: str, data: bytes) -> None:
         nonlocal files, total
         parts = [data[i:i + FILE_LIMIT] for i in range(0, len(data), FILE_LIMIT)]
         if files + len(parts) > MAX_FILES or total + len(data) > TOTAL_LIMIT:
             print(f"{name}: {len(data):,} bytes do not fit; left out")
-            return False
+            return
         for i, part in enumerate(parts):
             (out / (name if len(parts) == 1 else f"{name}.{i}")).write_bytes(part)
         files, total = files + len(parts), total + len(data)
         print(f"{name}: {len(data):,} bytes in {len(parts)} file(s)")
-        return True
 
     by_row: dict[str, list[Path]] = {}
     for run in runs:
@@ -84,15 +89,14 @@ def main(out: Path) -> None:
         r.partition("+")[0] for r in spec["rows"] if "+" in r)]
     for row in bases:
         if row in finished:
-            write(f"best_{row}.tar", tar_bytes([
-                (latest(r / "best"), f"runs/{r.name}/best/{latest(r / 'best').name}")
-                for r in by_row[row]]))
+            write(f"best_{row}.tar",
+                  tar_bytes([x for r in by_row[row] for x in newest(r, "best")]))
     unfinished = [(min(map(env_steps, rs)), row) for row, rs in by_row.items()
-                  if row not in finished and all(latest(r / "checkpoints") for r in rs)]
+                  if row not in finished and all(newest(r, "checkpoints") for r in rs)]
     for _, row in sorted(unfinished, reverse=True)[:1]:
-        write(f"part_{row}.tar", tar_bytes([
-            (latest(r / sub), f"runs/{r.name}/{sub}/{latest(r / sub).name}")
-            for r in by_row[row] for sub in ("checkpoints", "best") if latest(r / sub)]))
+        write(f"part_{row}.tar", tar_bytes([x for r in by_row[row]
+                                            for sub in ("checkpoints", "best")
+                                            for x in newest(r, sub)]))
     print(f"{files} files, {total:,} bytes")
 
 

@@ -4,8 +4,8 @@
 # into OUT_DIR by pack.py (the runs' small files, best checkpoints of finished TPN bases,
 # the most advanced unfinished row's checkpoints). How the 5 M table's GPU rows were made
 # (docs/results.md); unpack with: tar xzf OUT_DIR/small.tgz -C experiments/results/table_5m,
-# tar xf OUT_DIR/best_ROW.tar -C experiments/results/table_5m, then run_table.py --only
-# ROWS rebuilds the table files from them.
+# tar xf OUT_DIR/best_ROW.tar -C experiments/results/table_5m, then run_table.py --spec
+# SPEC --only ROWS rebuilds the table files from them (their runs are finished).
 # usage: OUT=OUT_DIR [SPEC=spec.json] bash experiments/gpu_streams/run.sh DEADLINE_S COMMIT
 #            "rows of stream 1" "rows of stream 2" ...   (COMMIT: of the clean tree copied)
 set -u
