@@ -248,21 +248,15 @@ def pretrain_dir(out: Path, row: str, seed: int | str) -> Path:
 
 
 def pretrain_seed(row: str, seed: int, out: Path, overrides: dict) -> Path:
-    """The pre-training of a PRETRAIN_ROWS row's seed (api.pretrain of the PretrainConfig
-    of the row's config, as `--preset vtnet` makes it): trained, resumed when partial,
-    reused without work when finished -> its directory (the A2C run's `pretrained`)."""
-    from orgnav_jax.training.checkpoints import RunCheckpoints
-    from orgnav_jax.training.pretrain import PretrainConfig
+    """The pre-training of a PRETRAIN_ROWS row's seed (api.pretrain_for the row's config,
+    as `--preset vtnet` makes it): trained, resumed when partial, reused without work
+    when finished -> its directory (the A2C run's `pretrained`)."""
     pre = pretrain_dir(out, row, seed)
-    cfg = PretrainConfig.of(get_config(row, **{**overrides, "seed": seed}),
-                            run_dir=str(pre), seed=seed, pretrained=None)
     resumed = is_run_dir(pre)
-    if resumed and (RunCheckpoints(pre).latest_step() or 0) >= \
-            cfg.num_updates * cfg.pretrain_batch:
-        return pre                                     # finished: reused as it is
-    api.pretrain(cfg, resume=resumed, progress=sys.stderr.isatty())
-    record_provenance(pre, f"{'resumed and finished' if resumed else 'trained'} the "
-                           f"pre-training ({cfg.pretrain_samples:,} samples)")
+    cfg = get_config(row, **{**overrides, "seed": seed})
+    if api.pretrain_for(cfg, pre, progress=sys.stderr.isatty()):
+        record_provenance(pre, f"{'resumed and finished' if resumed else 'trained'} the "
+                               f"pre-training ({cfg.pretrain_samples:,} samples)")
     return pre
 
 

@@ -13,7 +13,9 @@ A variant is NAME=ROW[:FIELD=VALUE,...] (ROW a training preset, the fields Train
 overrides). Each (variant, seed) trains in OUT/runs/NAME-s<seed> (resumed when it has
 checkpoints, skipped when finished: rerun the same command after an interruption). After
 every run OUT/<name>.json (every run's best val record) and OUT/<name>.md (best val
-success and SPL per variant, mean over seeds) are rewritten.
+success and SPL per variant, mean over seeds) are rewritten. A VTNet variant (row vtnet,
+no `pretrained` field) pre-trains first, in OUT/runs/NAME-pretrain-s<seed>, as
+`--preset vtnet` does.
 """
 
 from __future__ import annotations
@@ -26,7 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from orgnav_jax import api
 from orgnav_jax.errors import run_cli
+from orgnav_jax.train import PRETRAIN_PIPELINES
 from orgnav_jax.training.run_dir import METRICS_FILE, is_run_dir, read_metrics
 from orgnav_jax.training.config import TrainConfig, get_config, load_config
 
@@ -61,6 +65,15 @@ def best_val(run_dir: Path, up_to: int) -> dict:
             raise ValueError(f"{run_dir / METRICS_FILE}: the val record at env step "
                              f"{r['env_steps']:,} lacks field(s) {missing}")
     return max(val, key=lambda r: (r["success"], r["spl"]))
+
+
+def finished(run_dir: Path, total: int) -> bool:
+    """Whether a run's metrics reach `total` env steps (read as it is, not resumed: a run
+    extended beyond the sweep, or one made elsewhere)."""
+    if not is_run_dir(run_dir) or not (run_dir / METRICS_FILE).exists():
+        return False
+    return max((r["env_steps"] for r in read_metrics(run_dir, skip_broken=True)),
+               default=0) >= total
 
 
 def write_summary(out: Path, name: str, results: dict) -> str:
@@ -99,11 +112,17 @@ def main(argv: list[str] | None = None) -> None:
         for name, row, overrides in args.variants:
             run_dir = Path(args.runs if args.runs is not None else out / "runs") / \
                 f"{name}-s{seed}"
+            pre = run_dir.with_name(f"{name}-pretrain-s{seed}") \
+                if row in PRETRAIN_PIPELINES and "pretrained" not in overrides else None
             cfg = get_config(row, **{**overrides, "seed": seed, "run_dir": str(run_dir),
-                                     "total_env_steps": args.total_env_steps})
+                                     "total_env_steps": args.total_env_steps,
+                                     **({"pretrained": str(pre)} if pre else {})})
             print(f"{name} seed {seed}: {row} {overrides}", flush=True)
-            if not is_run_dir(run_dir) or load_config(run_dir).total_env_steps <= \
-                    args.total_env_steps:      # (a run extended beyond the sweep: read it)
+            if pre and not is_run_dir(run_dir):     # VTNet: its pre-training first
+                api.pretrain_for(cfg, pre, progress=sys.stderr.isatty())
+            if not finished(run_dir, args.total_env_steps) and (
+                    not is_run_dir(run_dir) or load_config(run_dir).total_env_steps <=
+                    args.total_env_steps):   # (a run extended beyond the sweep: read it)
                 train(cfg, resume=is_run_dir(run_dir), progress=sys.stderr.isatty())
             record = best_val(run_dir, args.total_env_steps + cfg.steps_per_update *
                               cfg.updates_per_chunk)

@@ -240,6 +240,21 @@ def pretrain(cfg, resume: bool = False, progress: bool = True) -> dict:
     return pretrain_vtnet(cfg, resume=resume, progress=progress)
 
 
+def pretrain_for(cfg: TrainConfig, pre_dir: str | Path, progress: bool = True) -> bool:
+    """The pre-training a VTNet training config `cfg` starts from, in pre_dir (its
+    PretrainConfig, seed cfg.seed): trained, resumed when partial, reused without work
+    when finished -> whether any pre-training ran now."""
+    from orgnav_jax.training.checkpoints import RunCheckpoints
+    from orgnav_jax.training.pretrain import PretrainConfig
+    pcfg = PretrainConfig.of(cfg, run_dir=str(pre_dir), pretrained=None)
+    resumed = is_run_dir(pre_dir)
+    if resumed and (RunCheckpoints(pre_dir).latest_step() or 0) >= \
+            pcfg.num_updates * pcfg.pretrain_batch:
+        return False
+    pretrain(pcfg, resume=resumed, progress=progress)
+    return True
+
+
 def train_tpn(cfg, resume: bool = False, progress: bool = True) -> dict:
     """Stage 2: train (or resume) the TPN of cfg.run_dir on its frozen base -> summary."""
     from orgnav_jax.tpn.stage2 import train_tpn as train_stage2

@@ -371,3 +371,41 @@ def test_run_table_bad_specs_and_outputs_are_one_line_and_write_nothing(table_di
     line = cli_error(run_table.main, ["--spec", work / "s.json"])
     assert "baseline-s0/provenance.json: not a provenance JSON" in line, line
     assert _snapshot(table_dir) == before
+
+
+def test_val_sweep_pretrains_a_vtnet_variant_first_and_reads_a_finished_run(
+        tmp_path, monkeypatch):
+    """experiments/val_sweep.py: a VTNet variant pre-trains in RUN-pretrain-sS and trains
+    from it (as `--preset vtnet` does), another row does not pre-train, and a run whose
+    metrics reach the budget (one made elsewhere, without checkpoints) is read, not
+    trained again. Training is replaced by a stand-in that writes a run's files."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    import val_sweep
+    from orgnav_jax.training import loop
+    from orgnav_jax.training.run_dir import write_config
+    calls = []
+
+    def fake_pretrain(cfg, pre, progress=True):
+        calls.append(("pretrain", Path(pre).name, Path(cfg.pretrained).name))
+        return True
+
+    def fake_train(cfg, resume=False, progress=True):
+        calls.append(("train", Path(cfg.run_dir).name, cfg.pretrained and
+                      Path(cfg.pretrained).name))
+        write_config(cfg.run_dir, cfg)
+        Path(cfg.run_dir, "metrics.jsonl").write_text("".join(
+            json.dumps({"kind": "val", "env_steps": s, "success": s / 1e5, "spl": 0.1}) + "\n"
+            for s in (25600, 51200)))
+
+    monkeypatch.setattr(val_sweep.api, "pretrain_for", fake_pretrain)
+    monkeypatch.setattr(loop, "train", fake_train)
+    argv = ["--name", "v", "--out", str(tmp_path), "--seeds", "100", "--total-env-steps",
+            "51200", "--variants", "vt=vtnet:pretrain_samples=4096", "b=baseline"]
+    val_sweep.main(argv)
+    assert calls == [("pretrain", "vt-pretrain-s100", "vt-pretrain-s100"),
+                     ("train", "vt-s100", "vt-pretrain-s100"), ("train", "b-s100", None)]
+    saved = json.loads((tmp_path / "v.json").read_text())
+    assert saved["vt"]["100"]["success"] == 0.512 and saved["b"]["100"]["env_steps"] == 51200
+    calls.clear()
+    val_sweep.main(argv)                          # both finished: read, nothing trained
+    assert calls == []

@@ -2,11 +2,12 @@
 most 8 files of 16 MB (63 MB in all):
 
 - small.tgz: every run's small files (config, metrics, test results, provenance; no
-  checkpoints, TensorBoard logs or episode caches), the streams' logs and tables;
+  checkpoints, TensorBoard logs or episode caches), the streams' logs, tables and the
+  sweeps' records (OUT*/*.json, *.md);
 - best_ROW.tar: the best-on-val checkpoints of a finished row that a TPN row of a stream's
   spec builds on (ROW+... in its rows), so its TPN rows can run elsewhere;
-- part_ROW.tar: the latest checkpoints of the most advanced unfinished row, to resume
-  it elsewhere, if they fit.
+- part_ROW.tar: the latest checkpoints of the most advanced unfinished row of a spec, to
+  resume it elsewhere, if they fit.
 
 An archive over 16 MB is split into NAME.0, NAME.1, ... (`cat NAME.* | tar x`).
 
@@ -61,8 +62,8 @@ def main(out: Path) -> None:
                 small = not set(rel.parts) & BIG and not f.name.startswith(("episodes-", "."))
                 if f.is_file() and small:
                     t.add(f, f"runs/{run.name}/{rel}")
-        for f in [*STREAMS.glob("log*.txt"), *STREAMS.glob("out*/table.md"),
-                  *STREAMS.glob("out*/results.json")]:
+        for f in [*STREAMS.glob("log*.txt"), *STREAMS.glob("out*/*.md"),
+                  *STREAMS.glob("out*/*.json")]:      # tables, results, sweeps' records
             t.add(f, f"meta/{f.parent.name}-{f.name}")
     files, total = 2, (out / "small.tgz").stat().st_size      # small.tgz and log.txt
 
@@ -91,8 +92,10 @@ def main(out: Path) -> None:
         if row in finished:
             write(f"best_{row}.tar",
                   tar_bytes([x for r in by_row[row] for x in newest(r, "best")]))
+    rows = {r for spec in specs for r in spec["rows"]}       # not a command stream's runs
     unfinished = [(min(map(env_steps, rs)), row) for row, rs in by_row.items()
-                  if row not in finished and all(newest(r, "checkpoints") for r in rs)]
+                  if row in rows and row not in finished and
+                  all(newest(r, "checkpoints") for r in rs)]
     for _, row in sorted(unfinished, reverse=True)[:1]:
         write(f"part_{row}.tar", tar_bytes([x for r in by_row[row]
                                             for sub in ("checkpoints", "best")
