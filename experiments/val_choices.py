@@ -21,7 +21,10 @@ experiments/results/before_parity/val_choices.
 - savn_act.json: D-SAVN's val success with greedy and with sampled test-time actions
   (variants `greedy`, `sample`; the same trained runs);
 - savn_optim.json: D-SAVN with our optimiser against SAVN's release's (`dsavn-ours`,
-  `dsavn-release`).
+  `dsavn-release`);
+- vtnet.json: VTNet's pre-training budget, attention mask and pre-trained lr scale, one
+  at a time against the defaults (5 M env steps; `vtnet-default`, `vtnet-pre4m`,
+  `vtnet-mask`, `vtnet-lrscale1`).
 A file not made yet gives no choice (the defaults then stay, and the test skips it).
 Each choice is the variant with the highest val success (SPL breaks ties); a choice over
 several rows or bases takes the mean over them. It writes choices.json (the choices with
@@ -41,6 +44,8 @@ TPN_BASES = {"baseline-ours-s100": "Baseline", "org_il-cause-w0.3-s100": "ORG + 
 TPN_RUNS = {"tpn": ("state", "ours"), "tpn-release": ("release", "ours"),
             "tpn-release-optim": ("release", "release")}
 OPTIM_ROWS = {"baseline": "Baseline", "org_il": "ORG + IL"}
+# what the VTNet sweep varies, with the defaults before it (training/config.py)
+VTNET_FIELDS = {"pretrain_samples": 1_000_000, "vtnet_mask": "none", "pretrained_lr_scale": 0.1}
 # the IL sweep's runs: seed 100 (il), seed 101 (il_101), step and norm at seed 100 (il_more)
 IL_SWEEPS = ("il", "il_101", "il_more")
 
@@ -126,7 +131,7 @@ def tpn_choice(root: Path) -> dict:
 
 def sweep_files(root: Path = OUT) -> list[Path]:
     """The val_sweep.py-form JSONs the choices read (each {variant: {seed: record}})."""
-    names = ("dropout", *IL_SWEEPS, "optim", "savn", "savn_optim", "savn_act")
+    names = ("dropout", *IL_SWEEPS, "optim", "savn", "savn_optim", "savn_act", "vtnet")
     return [root / f"{n}.json" for n in names if (root / f"{n}.json").exists()]
 
 
@@ -147,6 +152,8 @@ def choices(root: Path = OUT) -> dict:
         out |= pick_fields(root, ("savn_act",), {"savn_act": "sample"})
     if (root / "savn_optim.json").exists():
         out |= {"savn_optim": pick_fields(root, ("savn_optim",), {"optim": "ours"})["optim"]}
+    if (root / "vtnet.json").exists():
+        out |= pick_fields(root, ("vtnet",), VTNET_FIELDS)
     return out
 
 
@@ -193,6 +200,12 @@ def markdown(ch: dict) -> str:
     for name, what in simple[1:]:
         if name in ch:
             lines.append(f"| {what} | {cells(ch[name]['val'])} | {ch[name]['value']} |")
+    if "pretrain_samples" in ch:
+        c = ch["pretrain_samples"]
+        lines.append(f"| VTNet: pre-training samples, attention mask, pre-trained lr scale "
+                     f"(5 M steps) | {cells(c['val'])} | `{c['variant']}`: pretrain_samples "
+                     f"{c['value']:,}, vtnet_mask {ch['vtnet_mask']['value']}, "
+                     f"pretrained_lr_scale {ch['pretrained_lr_scale']['value']:g} |")
     return "\n".join(lines) + "\n"
 
 

@@ -309,6 +309,32 @@ def test_select_errors(tiny_scenes):
     assert v.global_basis is tiny_scenes.global_basis
 
 
+def test_load_or_build_keeps_a_set_another_process_saved_meanwhile(bath, tmp_path,
+                                                                   monkeypatch):
+    """Two processes building the same cached set: the second to finish keeps the first's
+    files (same inode: never renamed away under a process reading them) and loads them;
+    an explicit save still replaces."""
+    from orgnav_jax.scenes.synthetic import cache
+    monkeypatch.setenv("ORGNAV_CACHE", str(tmp_path / "cache"))
+    path = cache.cache_path("tiny", 3)
+
+    inodes = []
+
+    def racing_build(preset, seed, progress=False):     # the other process saves first
+        storage.save(bath, path)
+        inodes.append((path / storage.META_FILE).stat().st_ino)
+        return bath
+
+    monkeypatch.setattr(cache, "build", racing_build)
+    got = cache.load_or_build("tiny", 3, progress=False, mmap=True)
+    inode = (path / storage.META_FILE).stat().st_ino
+    assert inode == inodes[0]
+    assert_same_sceneset(got, bath)
+    assert sorted(p.name for p in path.parent.iterdir()) == [path.name]   # no temp left
+    storage.save(bath, path)
+    assert (path / storage.META_FILE).stat().st_ino != inode
+
+
 def test_load_or_build_caches(bath, tmp_path, monkeypatch):
     from orgnav_jax.scenes.synthetic import cache
     calls = []

@@ -59,5 +59,11 @@ def test_defaults_are_the_choices(val_choices):
                    for row in spec["rows"] if "+" in row)
         assert TPNConfig().placement == TestTime().placement == chosen["tpn_placement"]
         assert TPNConfig().optim == chosen["tpn_stage2_optim"]
+    if "pretrain_samples" in chosen:             # VTNet's sweep (issue 43)
+        for field in ("pretrain_samples", "vtnet_mask", "pretrained_lr_scale"):
+            assert getattr(get_config("vtnet"), field) == getattr(TrainConfig(), field) \
+                == chosen[field], field
+            assert field not in spec["config"], field
+        assert get_config("vtnet_scratch").vtnet_mask == chosen["vtnet_mask"]
     args = train_cli.parser().parse_args(["--preset", "full"])
     assert train_cli.pipeline_tpn_fields(args) == {}        # the default: TPN_LR

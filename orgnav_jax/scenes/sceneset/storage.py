@@ -90,9 +90,11 @@ def _remove_own_set(path: Path) -> None:
 
 
 def save(scenes: SceneSet, path: str | os.PathLike, validate: bool = True, *,
-         writers: dict | None = None) -> Path:
+         writers: dict | None = None, replace: bool = True) -> Path:
     """Write `scenes` to directory `path`, replacing an existing SceneSet there
-    atomically. Returns the path.
+    atomically. Returns the path. replace=False keeps a SceneSet that is at `path` when
+    the new one is ready (another process saved the same set meanwhile: a cache) and
+    drops the new one.
 
     Refuses (FileExistsError, nothing written) a path that is a file or a non-empty
     directory that is not a SceneSet (is_scene_set). validate=True first checks the set
@@ -131,6 +133,14 @@ def save(scenes: SceneSet, path: str | os.PathLike, validate: bool = True, *,
         (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
         # checked again: the path may have changed while the arrays were written
         check_output_dir(path, is_scene_set, "a SceneSet", option="output")
+        if not replace:
+            try:                          # atomic: fails if a set is there by now
+                tmp.rename(path)
+            except OSError:
+                if not is_scene_set(path):
+                    raise
+                shutil.rmtree(tmp, ignore_errors=True)
+            return path
         if path.exists():
             old = path.with_name(f".{path.name}.old")
             k = 0

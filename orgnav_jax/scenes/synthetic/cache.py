@@ -1,7 +1,7 @@
 """Reuse a built benchmark across runs and within a process.
 
 load_or_build: build once per (preset, seed, format version) into the cache directory,
-then load. The directory name carries the format version, so a new version rebuilds
+then load; processes building the same set at once keep the first one saved. The directory name carries the format version, so a new version rebuilds
 automatically and code of an older version (another checkout sharing the cache) keeps
 reading its own copy.
 
@@ -47,7 +47,8 @@ def load_or_build(preset: str = "small", seed: int = 0, cache_dir: str | os.Path
     if (path / META_FILE).exists():
         return load(path, mmap=mmap)
     scenes = build(preset, seed, progress=progress)
-    save(scenes, path)
+    # never replaces a set another process saved meanwhile (it may be reading it)
+    save(scenes, path, replace=False)
     return load(path, mmap=True) if mmap else scenes
 
 
