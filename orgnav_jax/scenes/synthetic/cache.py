@@ -1,9 +1,9 @@
 """Reuse a built benchmark across runs and within a process.
 
 load_or_build: build once per (preset, seed, format version) into the cache directory,
-then load; processes building the same set at once keep the first one saved. The directory name carries the format version, so a new version rebuilds
-automatically and code of an older version (another checkout sharing the cache) keeps
-reading its own copy.
+then load; processes building the same set at once keep the first one saved. The
+directory name carries the format version, so a new version rebuilds automatically and
+code of an older version (another checkout sharing the cache) keeps reading its own copy.
 
 load_scenes / device_split: within one process, the last SceneSet loaded (memory-mapped)
 and its split views put on the device are kept, so that training, its val evaluation and
