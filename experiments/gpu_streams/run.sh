@@ -18,7 +18,11 @@ export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false \
     JAX_DEFAULT_MATMUL_PRECISION=highest
 LOG=$OUT/log.txt
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; nproc
-  python3 --version; } >>"$LOG" 2>&1
+  python3 --version
+  # what provenance's "uncommitted_changes" will see in this copy of the tree
+  echo "git status of the copy:"; git -c core.fileMode=false status --porcelain \
+      --untracked-files=no -- orgnav_jax experiments ':(exclude)experiments/results'
+} >>"$LOG" 2>&1
 # .whl/ (optional, git-ignored): pure-Python wheels of the versions this project pins
 # (flax, optax, chex, orbax-checkpoint, tensorboardX) for a machine without a package
 # index; if they do not import there, the machine's own packages are used
