@@ -8,8 +8,10 @@
 # SPEC --only ROWS rebuilds the table files from them (their runs are finished).
 # usage: OUT=OUT_DIR [SPEC=spec.json] bash experiments/gpu_streams/run.sh DEADLINE_S COMMIT
 #            "rows of stream 1" "rows of stream 2" ...   (COMMIT: of the clean tree copied)
-#        a stream "cmd:COMMAND" runs COMMAND instead, with G=/tmp/g/outN (e.g. a val sweep
-#        with --out $G); its runs in $G/runs and records $G/*.json, *.md are packed too
+#        "ROWS @S1 @S2" trains only those seeds (e.g. one SAVN seed per stream: SAVN runs
+#        one seed per program); a stream "cmd:COMMAND" runs COMMAND instead, with
+#        G=/tmp/g/outN (e.g. a val sweep with --out $G); its runs in $G/runs and records
+#        $G/*.json, *.md are packed too
 set -u
 T0=$(date +%s); DL=$1; export ORGNAV_CODE=$2; shift 2
 elapsed() { echo $(( $(date +%s) - T0 )); }
@@ -45,7 +47,10 @@ for rows in "$@"; do                  # stream i: the spec with out /tmp/g/out$i
     python3 - "$i" "$rows" <<'PY'
 import json, os, sys
 spec = json.load(open(os.environ.get("SPEC", "experiments/tables/table_5m.json")))
-spec["out"], spec["rows"] = f"/tmp/g/out{sys.argv[1]}", sys.argv[2].split()
+words = sys.argv[2].split()                     # ROWS [@SEED ...]: these seeds only
+seeds = [int(w[1:]) for w in words if w.startswith("@")]
+spec["out"], spec["rows"] = f"/tmp/g/out{sys.argv[1]}", [w for w in words if w[0] != "@"]
+spec["seeds"] = seeds or spec["seeds"]
 json.dump(spec, open(f"/tmp/g/spec{sys.argv[1]}.json", "w"))
 PY
     python3 experiments/run_table.py --spec /tmp/g/spec$i.json >/tmp/g/log$i.txt 2>&1 &
