@@ -274,7 +274,7 @@ def pretrain_budget(out: Path, row: str, seed: int | str) -> dict:
     cfg = load_pretrain_config(pre)
     val = [r["accuracy"] for r in read_metrics(pre, "samples", skip_broken=True)
            if r["kind"] == "val" and "accuracy" in r]
-    return {"pretrain_samples": cfg.num_updates * cfg.pretrain_batch,
+    return {"pretrain_samples": cfg.total_samples,
             "pretrain_batch": cfg.pretrain_batch,
             **({"pretrain_val_accuracy": max(val)} if val else {})}
 

@@ -67,13 +67,17 @@ def best_val(run_dir: Path, up_to: int) -> dict:
     return max(val, key=lambda r: (r["success"], r["spl"]))
 
 
-def finished(run_dir: Path, total: int) -> bool:
-    """Whether a run's metrics reach `total` env steps (read as it is, not resumed: a run
-    extended beyond the sweep, or one made elsewhere)."""
-    if not is_run_dir(run_dir) or not (run_dir / METRICS_FILE).exists():
+def needs_training(run_dir: Path, total: int) -> bool:
+    """Whether a sweep's run must be trained (started or resumed) to `total` env steps:
+    not when its metrics already reach it (a run made elsewhere, perhaps without
+    checkpoints) or when it was extended beyond the sweep's budget (read as it is)."""
+    if not is_run_dir(run_dir):
+        return True
+    if (run_dir / METRICS_FILE).exists() and max(
+            (r["env_steps"] for r in read_metrics(run_dir, skip_broken=True)),
+            default=0) >= total:
         return False
-    return max((r["env_steps"] for r in read_metrics(run_dir, skip_broken=True)),
-               default=0) >= total
+    return load_config(run_dir).total_env_steps <= total
 
 
 def write_summary(out: Path, name: str, results: dict) -> str:
@@ -120,9 +124,7 @@ def main(argv: list[str] | None = None) -> None:
             print(f"{name} seed {seed}: {row} {overrides}", flush=True)
             if pre and not is_run_dir(run_dir):     # VTNet: its pre-training first
                 api.pretrain_for(cfg, pre, progress=sys.stderr.isatty())
-            if not finished(run_dir, args.total_env_steps) and (
-                    not is_run_dir(run_dir) or load_config(run_dir).total_env_steps <=
-                    args.total_env_steps):   # (a run extended beyond the sweep: read it)
+            if needs_training(run_dir, args.total_env_steps):
                 train(cfg, resume=is_run_dir(run_dir), progress=sys.stderr.isatty())
             record = best_val(run_dir, args.total_env_steps + cfg.steps_per_update *
                               cfg.updates_per_chunk)

@@ -248,8 +248,7 @@ def pretrain_for(cfg: TrainConfig, pre_dir: str | Path, progress: bool = True) -
     from orgnav_jax.training.pretrain import PretrainConfig
     pcfg = PretrainConfig.of(cfg, run_dir=str(pre_dir), pretrained=None)
     resumed = is_run_dir(pre_dir)
-    if resumed and (RunCheckpoints(pre_dir).latest_step() or 0) >= \
-            pcfg.num_updates * pcfg.pretrain_batch:
+    if resumed and (RunCheckpoints(pre_dir).latest_step() or 0) >= pcfg.total_samples:
         return False
     pretrain(pcfg, resume=resumed, progress=progress)
     return True

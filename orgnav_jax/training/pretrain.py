@@ -83,6 +83,11 @@ class PretrainConfig(TrainConfig):
     def num_updates(self) -> int:
         return max(1, self.pretrain_samples // self.pretrain_batch)
 
+    @property
+    def total_samples(self) -> int:
+        """The samples the budget trains: whole batches (pretrain_samples rounded down)."""
+        return self.num_updates * self.pretrain_batch
+
     def budget_notice(self) -> str | None:
         from orgnav_jax.training.config_fields import budget_notice
         return budget_notice("pretrain_samples", self.pretrain_samples, self.pretrain_batch,
@@ -240,7 +245,7 @@ def pretrain(cfg: PretrainConfig, resume: bool = False, progress: bool = True,
         stage = Stage(
             name="pretrain vtnet", unit="sample", step_name="samples",
             rate_key="samples_per_s", per_chunk=cfg.updates_per_chunk * cfg.pretrain_batch,
-            total=cfg.num_updates * cfg.pretrain_batch,
+            total=cfg.total_samples,
             chunk=lambda r: chunk(r, train_scenes), summarize=floats,
             validate=lambda r: floats(val(r.params, val_inputs, val_labels)),
             score_keys=("accuracy",), best_keys=("accuracy", "ce"),
