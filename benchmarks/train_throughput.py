@@ -31,7 +31,9 @@ really took (a row whose episode ended idles to the next segment boundary, where
 starts a new one), slot_steps_per_s every row step, real_fraction the share of real ones,
 ratio_to_base the real env-steps/s over the base model's (the plain A2C row, timed again
 after the SAVN rows, best of all its runs kept: every step of A2C is real). One untimed
-chunk runs first so that the timed ones start with episodes running in the rows.
+chunk runs first so that the timed ones start with episodes running in the rows. Both
+rows are timed on the SAVN rows' network, one LSTM layer (TABLE_ROWS["dsavn"], as SAVN's
+release), unless --lstm-layers N says otherwise (it sets the depth of every row).
 --savn-segments U [U ...] times a row per savn_segments. How much of SAVN's time is idle
 depends on how long its episodes are: a fresh policy says Done after about 6.5 steps, a
 trained agent walks 15-18. --params-from RUN_DIR [RUN_DIR ...] times each run's model at
@@ -124,7 +126,7 @@ from orgnav_jax.scenes import load_or_build  # noqa: E402
 from orgnav_jax.scenes.synthetic.builder import feature_bases  # noqa: E402
 from orgnav_jax.scenes.synthetic.presets import get_preset  # noqa: E402
 from orgnav_jax.training import scale  # noqa: E402
-from orgnav_jax.training.config import get_config  # noqa: E402
+from orgnav_jax.training.config import TABLE_ROWS, get_config  # noqa: E402
 from orgnav_jax.training.update import (  # noqa: E402
     init_runner, make_optimizer, make_train_chunk)
 
@@ -216,8 +218,11 @@ def row_config(preset: str, trained: "Trained | None" = None, **over):
 
 def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
              rollout_len: int | None, repeats: int, devices: int = 1, seeds: int = 1,
-             dtype: str = "float32", trained: "Trained | None" = None) -> dict:
+             dtype: str = "float32", trained: "Trained | None" = None,
+             lstm_layers: int | None = None) -> dict:
     over = dict(model=model_name, num_envs=num_envs, updates_per_chunk=updates, dtype=dtype)
+    if lstm_layers:
+        over["lstm_layers"] = lstm_layers
     if rollout_len:
         over["rollout_len"] = rollout_len
     cfg = row_config(preset, trained, **over)
@@ -257,6 +262,7 @@ def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
     raw = _flops(compiled.cost_analysis())
     sps = steps / best
     return {"preset": preset, "model": model_name, "num_envs": num_envs,
+            "lstm_layers": cfg.lstm_layers,
             "devices": scale.mesh_size(mesh), "seeds": seeds, "dtype": dtype,
             "env_steps_per_s": round(sps, 1), "compile_s": round(compile_s, 2),
             "gflops_per_s": _per_step(flops * sps, steps, 1e9, 2),
@@ -278,7 +284,7 @@ def retime(row: dict, repeats: int) -> None:
 
 def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
                   repeats: int, first_order: bool = False, trained: "Trained | None" = None,
-                  segments: int | None = None) -> dict:
+                  segments: int | None = None, lstm_layers: int | None = None) -> dict:
     """SAVN training (training/savn.py) at the preset's (or the trained run's) widths:
     env-steps/s of the jitted chunk, counting the env steps the episodes really took
     (env_steps_real; a row whose episode ended idles, masked, to the next segment boundary,
@@ -292,6 +298,8 @@ def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: 
                 savn_first_order=first_order)
     if segments:
         over["savn_segments"] = segments
+    if lstm_layers:
+        over["lstm_layers"] = lstm_layers
     cfg = row_config(preset, trained, **over)
     model = build_model(cfg, scenes)
     optimizer = make_optimizer(cfg)
@@ -318,7 +326,8 @@ def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: 
     real = float(metrics["env_steps_real"])
     slots = cfg.updates_per_chunk * cfg.steps_per_update
     return {"preset": preset, "model": f"{model_name}+savn" + ("-fo" if first_order else ""),
-            "num_envs": num_envs, "savn_segments": cfg.savn_segments,
+            "num_envs": num_envs, "lstm_layers": cfg.lstm_layers,
+            "savn_segments": cfg.savn_segments,
             "env_steps_per_s": round(real / best, 1),
             "slot_steps_per_s": round(slots / best, 1), "real_fraction": round(real / slots, 3),
             "compile_s": round(compile_s, 2), "scratch_mb": scratch_mb(compiled),
@@ -400,7 +409,16 @@ def main() -> None:
                          "the base model's row gets its network), so that SAVN's episodes "
                          "are as long as a trained agent's (--models and --presets are "
                          "then not used)")
+    ap.add_argument("--lstm-layers", type=int, default=None,
+                    help="LSTM layers of the timed networks (default: the preset's, 2; "
+                         "with --savn, the SAVN rows' (TABLE_ROWS['dsavn']: 1, as SAVN's "
+                         "release), for the plain row too, so that ratio_to_base compares "
+                         "one network; not with --params-from: a run's network is its own)")
     args = ap.parse_args()
+    if args.lstm_layers is not None and (args.lstm_layers < 1 or args.params_from):
+        ap.error("--lstm-layers must be >= 1, and is not used with --params-from")
+    if args.lstm_layers is None and args.savn != "none" and not args.params_from:
+        args.lstm_layers = TABLE_ROWS["dsavn"]["lstm_layers"]
     bad = sorted(set(args.models) - set(ENCODERS))
     if bad:
         ap.error(f"unknown model(s) {bad}: expected some of {sorted(ENCODERS)}")
@@ -452,7 +470,8 @@ def main() -> None:
                                        for d in args.devices for s in args.seeds
                                        for n in args.num_envs]:
                 r = time_row(preset, model_name, n, scenes, args.updates_per_chunk,
-                             args.rollout_len, args.repeats, d, seeds, dtype, trained)
+                             args.rollout_len, args.repeats, d, seeds, dtype, trained,
+                             args.lstm_layers)
                 rows.append(r)
                 print(f"{preset:6} {model_name:9} {d:2d} {seeds:2d} {dtype:8} {n:4d} "
                       f"{r['_rollout_len']:3d} "
@@ -465,7 +484,7 @@ def main() -> None:
                 if args.savn != "none" and d == 1 and seeds == 1 and dtype == "float32":
                     savn_rows = [time_savn_row(preset, model_name, n, scenes,
                                                args.updates_per_chunk, args.repeats, fo,
-                                               trained, u)
+                                               trained, u, args.lstm_layers)
                                  for fo in (False, True)[:1 + (args.savn == "first-order")]
                                  for u in args.savn_segments]
                     retime(r, args.repeats)      # the base model again: best of both

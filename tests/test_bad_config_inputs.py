@@ -142,7 +142,7 @@ def test_configs_before_version_5_read_max_steps_as_episode_cap(tmp_path, versio
         (run / "config.json").write_text(json.dumps({"version": version, "stage": stage,
                                                      **doc}))
         assert load(run).episode_cap == cfg.episode_cap
-        assert json.loads(cfg.to_json())["version"] == CONFIG_VERSION == 8
+        assert json.loads(cfg.to_json())["version"] == CONFIG_VERSION == 9
         assert "max_steps" not in json.loads(cfg.to_json())
         doc["version"] = 5               # a version-5 config with the old name is refused
         (run / "config.json").write_text(json.dumps({"stage": stage, **doc}))
@@ -481,7 +481,7 @@ CONFIG_JSON_CASES = [
                                       "total_env_steps >= 1 and at most 1,000,000,000,000"),
     ("model", '{"name": "org"}', "config field 'model': {'name': 'org'}, expected a string"),
     ("scenes_dir", "[]", "config field 'scenes_dir': [], expected a string or null"),
-    ("version", "5.0", "config version 5.0, this orgnav_jax reads versions [2, 3, 4, 5, 6, 7, 8]"),
+    ("version", "5.0", "config version 5.0, this orgnav_jax reads versions [2, 3, 4, 5, 6, 7, 8, 9]"),
     ("stage", '["nav"]', "field 'stage': expected one of ['nav', 'tpn', 'pretrain'], got ['nav']"),
 ]
 

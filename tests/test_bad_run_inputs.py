@@ -338,7 +338,7 @@ def test_a_checkpoint_chunk_the_run_never_reached_is_refused(tmp_path, half_run,
                         "got a list"),
     (dict(best={"success": "0.5", "spl": 0.1}), "'best': field 'success': expected a number, "
                                                 "got '0.5'"),
-    (dict(config_version=True), "has config version True, expected one of [2, 3, 4, 5, 6, 7, 8]"),
+    (dict(config_version=True), "has config version True, expected one of [2, 3, 4, 5, 6, 7, 8, 9]"),
 ])
 def test_malformed_checkpoint_metadata_is_named_and_set_aside(tmp_path, tiny_dir, half_run,
                                                               fields, message, capsys):

@@ -67,7 +67,8 @@ def one_row_carry(model):
 
 
 def test_one_inner_step_is_an_sgd_step_on_the_learned_loss(rooms):
-    cfg, model, learned, meta = setup(rooms)
+    # two LSTM layers (the rows have one): every layer's kernels are low-rank updates
+    cfg, model, learned, meta = setup(rooms, lstm_layers=2)
     nav, k, lr = meta["nav"], cfg.savn_steps, 0.3
     fast = savn.init_fast(nav, 1, 2 * k)
     shared, _ = savn.split_params(nav)
@@ -101,8 +102,9 @@ def test_one_inner_step_is_an_sgd_step_on_the_learned_loss(rooms):
 def test_meta_gradient_matches_finite_differences(rooms):
     """Two segments: an inner step on the first, an outer loss on the second's logits and
     values; the gradient w.r.t. the initial parameters and the learned loss (second order,
-    float64) against central differences along a random direction."""
-    cfg, model, learned, meta32 = setup(rooms, hidden=4)
+    float64) against central differences along a random direction. Two LSTM layers (the
+    rows have one): the second-order gradient through both layers' low-rank updates."""
+    cfg, model, learned, meta32 = setup(rooms, hidden=4, lstm_layers=2)
     k = cfg.savn_steps
     seg32 = segment_inputs(rooms, 1, 2 * k, seed=3)
     with jax.enable_x64(True):
@@ -117,7 +119,8 @@ def test_meta_gradient_matches_finite_differences(rooms):
                 model, learned, shared, f.dense, f.ux, f.uh, f.v, carry, first, m["ll"], 0.5,
                 0, jnp.bool_(True), first_order)
             logits, values, *_ = savn.segment_row(model, shared, dense, ux, uh, v, carry,
-                                                  second, jnp.zeros((k, v.shape[-1])))
+                                                  second, tuple(jnp.zeros((k, w.shape[-1]))
+                                                                for w in v))
             return jnp.sum(jnp.sin(jnp.arange(6.0) + 1) * jax.nn.log_softmax(logits)) + \
                 jnp.sum(values ** 2)
 
@@ -346,12 +349,14 @@ def test_dsavn_preset_trains_and_evaluates_from_the_cli(tiny_dir, tmp_path):
 
 
 @pytest.mark.parametrize("version, says", [(6, "episode slots"),
-                                           (7, "stepped every episode whole")])
+                                           (7, "stepped every episode whole"),
+                                           (8, "first LSTM layer's updates low-rank")])
 def test_resuming_a_savn_run_of_an_older_meaning_is_refused(tmp_path, capsys, version,
                                                             says):
     """A SAVN run of config version <= 6 counted every episode at its cap; one of version
-    7 stepped whole episodes (its checkpoints hold no running episodes): resuming either
-    under the refill is one line, exit 2, before anything is written."""
+    7 stepped whole episodes (its checkpoints hold no running episodes); one of version 8
+    holds its running episodes' fast weights in another layout: resuming any of them is
+    one line, exit 2, before anything is written."""
     from orgnav_jax.errors import run_cli
     from orgnav_jax.train import main
     from orgnav_jax.training.config import get_config
@@ -368,23 +373,30 @@ def test_resuming_a_savn_run_of_an_older_meaning_is_refused(tmp_path, capsys, ve
     assert sorted(p.name for p in run.iterdir()) == before
 
 
-def test_a_version_7_savn_run_still_loads_from_its_latest_checkpoint(tiny_dir, tmp_path):
-    """A SAVN run saved before the refill (config version 7) has no rows in its runner:
-    its latest checkpoint (no best one) still gives its parameters for evaluation."""
+@pytest.mark.parametrize("version", [7, 8])
+def test_an_older_savn_run_still_loads_from_its_latest_checkpoint(tiny_dir, tmp_path,
+                                                                  version):
+    """A SAVN run saved before the refill (config version 7) has no rows in its runner;
+    one of version 8 (two LSTM layers here) holds its rows' fast weights with the second
+    layer's updates dense (savn.legacy_rows): the latest checkpoint of either (no best
+    one) still gives its parameters for evaluation."""
     from orgnav_jax.training import runs
     from orgnav_jax.training.checkpoints import RunCheckpoints
     from orgnav_jax.training.update import make_optimizer
-    run = tmp_path / "v7"
+    run = tmp_path / f"v{version}"
     run.mkdir()
-    cfg = get_config("dsavn", scenes_dir=tiny_dir, run_dir=str(run),
+    cfg = get_config("dsavn", scenes_dir=tiny_dir, run_dir=str(run), lstm_layers=2,
                      **{**SMALL, **TINY_WIDTHS})
-    doc = {k: v for k, v in json.loads(cfg.to_json()).items() if k != "savn_segments"}
-    (run / "config.json").write_text(json.dumps(dict(doc, version=7)))
+    doc = json.loads(cfg.to_json())
+    if version < 8:
+        doc.pop("savn_segments")
+    (run / "config.json").write_text(json.dumps(dict(doc, version=version)))
     scenes = runs.scenes_for(cfg).split_view("train")
     model = build_model(cfg, scenes)
     runner = savn.init_savn_runner(cfg, model, savn.build_learned_loss(), make_optimizer(cfg),
                                    scenes.to_device(), jax.random.PRNGKey(2))
-    RunCheckpoints(run).save(48, runner.replace(rows=None), {"chunk": 1, "best": {}})
+    rows = None if version < 8 else savn.legacy_rows(runner.rows)
+    RunCheckpoints(run).save(48, runner.replace(rows=rows), {"chunk": 1, "best": {}})
     _, params, loaded = runs.load_run_model(run, best=False)
     assert loaded.savn
     for a, b in zip(jax.tree_util.tree_leaves(params),

@@ -17,14 +17,16 @@ import dataclasses
 import math
 import numbers
 
-CONFIG_VERSION = 8   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step;
+CONFIG_VERSION = 9   # 2: the split LSTM trunk (new parameter layout); 3: il_norm, il_step;
                      # 4: devices, dtype (scale-out; same parameters and checkpoints);
                      # 5: max_steps renamed episode_cap (both stages); 6: the savn fields
                      # (issue 39's net, prev_action came within 6); 7: issues 40 and 41
                      # (target_input, word_vectors, optim, savn_act; the TPN's placement,
                      # optim); 8: savn_segments (issue 40: SAVN refills ended rows at
-                     # segment boundaries; its runner holds the running episodes)
-READABLE_VERSIONS = (2, 3, 4, 5, 6, 7, 8)   # configs and checkpoints this version reads
+                     # segment boundaries; its runner holds the running episodes); 9: SAVN's
+                     # fast weights keep every LSTM layer's kernels as low-rank slots (its
+                     # runner's rows: a tuple per layer; before, the first layer's only)
+READABLE_VERSIONS = (2, 3, 4, 5, 6, 7, 8, 9)   # configs and checkpoints this version reads
 # Fields renamed since, old name -> new, for the configs of versions before 5 (both stages)
 RENAMED = {"max_steps": "episode_cap"}
 OLD_RENAMES = {v: RENAMED for v in (2, 3, 4)}

@@ -119,14 +119,16 @@ def savn_runner(cfg: TrainConfig, model, train_scenes):
 # really took (issue 40); before, every episode counted at its cap (episode slots).
 SAVN_REAL_STEPS_VERSION = 7
 SAVN_REFILL_VERSION = savn.REFILL_VERSION      # SAVN's updates refill ended rows
+SAVN_LAYERED_VERSION = savn.LAYERED_VERSION    # its rows' low-rank slots per LSTM layer
 
 
 def check_savn_resume(run_dir) -> None:
     """UserError (one line) when run_dir holds a SAVN run whose config predates
     SAVN_REAL_STEPS_VERSION (its env_steps count episode slots, not real env steps, so
     continuing it under the new count would mix the two) or SAVN_REFILL_VERSION (its
-    updates stepped whole episodes and its checkpoints hold no running episodes).
-    Nothing to check without a config.json (a new run)."""
+    updates stepped whole episodes and its checkpoints hold no running episodes) or
+    SAVN_LAYERED_VERSION (its checkpoints hold the running episodes' fast weights in
+    another layout). Nothing to check without a config.json (a new run)."""
     import json
     path = Path(run_dir) / "config.json"
     try:
@@ -146,6 +148,13 @@ def check_savn_resume(run_dir) -> None:
                         "updates stepped every episode whole to its cap; this version "
                         "refills ended rows at segment boundaries and carries running "
                         "episodes between updates (issue 40): start a new run, or evaluate "
+                        "this one as it is")
+    if (isinstance(version, int) and version < SAVN_LAYERED_VERSION
+            and doc.get("savn") is True):
+        raise UserError(f"--resume {run_dir}: a SAVN run of config version {version}, whose "
+                        "checkpoints hold the running episodes' fast weights with only the "
+                        "first LSTM layer's updates low-rank; this version keeps every "
+                        "layer's low-rank (issue 40, speed): start a new run, or evaluate "
                         "this one as it is")
 
 

@@ -99,11 +99,11 @@ def chunk_memory_bytes(cfg, scenes, params: int | None = None) -> dict[str, int]
     P = param_count(cfg, scenes) if params is None else params
     extra = {}
     if cfg.savn:
-        # each row's low-rank fast weights: savn_inner_steps x savn_steps slots of the first
+        # each row's low-rank fast weights: savn_inner_steps x savn_steps slots of each
         # LSTM layer's input, hidden state and 4 gates (input width taken as >= hidden),
         # kept for the meta-gradient: about three copies
         slots = cfg.savn_inner_steps * cfg.savn_steps
-        extra["fast_weights"] = 4 * N * slots * 6 * cfg.hidden * 3
+        extra["fast_weights"] = 4 * N * slots * 6 * cfg.hidden * cfg.lstm_layers * 3
     return {**extra,
         # params and Adam's two moments, in and out of the chunk (the gradient and update
         # are far smaller than the activations)

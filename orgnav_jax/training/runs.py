@@ -139,8 +139,12 @@ def load_run_model(run_dir: str | Path, best: bool = True):
             runner_like = jax.eval_shape(lambda s: savn.init_savn_runner(
                 cfg, model, savn.build_learned_loss(), make_optimizer(cfg), s,
                 jax.random.PRNGKey(0)), train)
-            if _saved_version(run_dir) < savn.REFILL_VERSION:   # its runner has no rows
+            version = _saved_version(run_dir)
+            if version < savn.REFILL_VERSION:                   # its runner has no rows
                 runner_like = runner_like.replace(rows=None)
+            elif version < savn.LAYERED_VERSION:                # version 8's fast weights
+                runner_like = runner_like.replace(rows=jax.eval_shape(
+                    savn.legacy_rows, runner_like.rows))
             params = ckpt.restore(runner_like)[0].params
         return model, params, cfg
     like = init_params(model, jax.random.PRNGKey(0), train)

@@ -12,14 +12,15 @@ force at each step, and its gradient (`jax.grad` through the inner steps, second
 unless `savn_first_order`) trains the initial parameters and the learned loss. At test
 time (`savn_policy`) the same inner steps run with the learned loss only.
 
-Fast weights (`Fast`, per batch row): every parameter of the navigation network. The
-first LSTM layer's input and recurrent kernels (most of the parameters) stay shared and
-each row keeps its updates as low-rank factors: one segment's SGD step on them is
--lr sum_t x_t^T d_t (x_t the layer's input, d_t the gate gradient at step t), so a slot
+Fast weights (`Fast`, per batch row): every parameter of the navigation network. Every
+LSTM layer's input and recurrent kernels (most of the parameters) stay shared and each
+row keeps its updates as low-rank factors: one segment's SGD step on a layer's kernels is
+-lr sum_t x_t^T d_t (x_t the layer's input, d_t its gate gradient at step t), so a slot
 holds (x_t, h_{t-1}, -lr d_t) and the forward pass adds sum_j (x . ux_j + h . uh_j) v_j
-(the idea of tpn/lowrank.py, written plainly here so that jax differentiates through it a
-second time). All other parameters are dense per-row copies (small). Slots not yet
-written are zero and add nothing, so shapes are fixed: savn_inner_steps x k slots.
+to the layer's gates (the idea of tpn/lowrank.py, written plainly here so that jax
+differentiates through it a second time). All other parameters are dense per-row copies
+(small). Slots not yet written are zero and add nothing, so shapes are fixed:
+savn_inner_steps x k slots per layer.
 
     meta = init_meta(model, learned, cfg, scenes, key)       # {"nav": ..., "ll": ...}
     loss, (aux, stats, rows) = savn_loss(meta, rows, model, learned, cfg, scenes, key)
@@ -50,10 +51,21 @@ from orgnav_jax.tree import tile, where_rows
 # and its runner (SavnRunner.rows) carries the running episodes to the next update (issue
 # 40); before, an update stepped num_envs whole episodes to the cap (runner rows None).
 REFILL_VERSION = 8
+# The config version from which the rows' fast weights keep every LSTM layer's kernels as
+# low-rank slots (Fast: a tuple per layer); in version 8 only the first layer's were, the
+# others' updates were dense per-row copies (legacy_rows converts to that layout).
+LAYERED_VERSION = 9
 
-LSTM0 = ("trunk", "lstm_0")                      # the first LSTM layer's module path
-LOWRANK = {("params",) + LSTM0 + ("input_kernel",): "ux",
-           ("params",) + LSTM0 + ("recurrent_kernel",): "uh"}
+KERNELS = {"input_kernel": "ux", "recurrent_kernel": "uh"}   # low-rank, per LSTM layer
+
+
+def lstm_module(i: int) -> tuple[str, str]:
+    """The module path of the trunk's LSTM layer i."""
+    return ("trunk", f"lstm_{i}")
+
+
+def kernel_path(i: int, name: str) -> tuple[str, ...]:
+    return ("params",) + lstm_module(i) + (name,)
 
 
 class LearnedLoss(nn.Module):
@@ -78,11 +90,16 @@ class LearnedLoss(nn.Module):
 @struct.dataclass
 class Fast:
     """Per-row fast weights (leading axis B): dense copies of every parameter but the
-    first LSTM layer's kernels, and those kernels' low-rank updates (R slots)."""
+    LSTM layers' kernels, and those kernels' low-rank updates (R slots), a tuple entry
+    per LSTM layer l."""
     dense: Any            # flat {path: (B, ...)}
-    ux: jax.Array         # (B, R, in)  the layer's input of each slot's step
-    uh: jax.Array         # (B, R, H)   the LSTM state before that step
-    v: jax.Array          # (B, R, 4H)  -lr x the gate gradient of that step (0: unused)
+    ux: tuple             # (B, R, in_l)  layer l's input at each slot's step
+    uh: tuple             # (B, R, H)     layer l's state before that step
+    v: tuple              # (B, R, 4H)    -lr x layer l's gate gradient there (0: unused)
+
+    def zero_pert(self, steps: int) -> tuple:
+        """Zero gate perturbations (B, steps, 4H) per layer (segment_row's `pert`)."""
+        return tuple(jnp.zeros((v.shape[0], steps, v.shape[-1]), v.dtype) for v in self.v)
 
 
 @struct.dataclass
@@ -111,13 +128,21 @@ class SavnRunner:
 
 
 def split_params(nav):
-    """Navigation variables -> (shared: the first LSTM layer's kernels, dense: the rest),
-    flat dicts {path: array}."""
+    """Navigation variables -> (shared: every LSTM layer's input and recurrent kernels,
+    dense: the rest), flat dicts {path: array}."""
     flat = traverse_util.flatten_dict(nav)
-    missing = [p for p in LOWRANK if p not in flat]
-    if missing:
-        raise ValueError(f"SAVN: the model has no {['/'.join(p) for p in missing]}")
-    return ({p: flat[p] for p in LOWRANK}, {p: x for p, x in flat.items() if p not in LOWRANK})
+    if kernel_path(0, "input_kernel") not in flat:
+        raise ValueError(f"SAVN: the model has no {'/'.join(kernel_path(0, 'input_kernel'))}")
+    low = {kernel_path(i, n) for i in range(num_layers(flat)) for n in KERNELS}
+    return ({p: flat[p] for p in low}, {p: x for p, x in flat.items() if p not in low})
+
+
+def num_layers(flat_or_shared) -> int:
+    """LSTM layers of the trunk in a flat parameter dict."""
+    i = 0
+    while kernel_path(i, "input_kernel") in flat_or_shared:
+        i += 1
+    return i
 
 
 def merge_params(shared, dense):
@@ -127,23 +152,27 @@ def merge_params(shared, dense):
 def init_fast(nav, batch: int, slots: int) -> Fast:
     """Every row's fast weights = the trained parameters (no slot written)."""
     shared, dense = split_params(nav)
-    w_in = shared[("params",) + LSTM0 + ("input_kernel",)]
-    w_h = shared[("params",) + LSTM0 + ("recurrent_kernel",)]
-    z = lambda n: jnp.zeros((batch, slots, n), w_in.dtype)
-    return Fast(tile(dense, batch), z(w_in.shape[0]), z(w_h.shape[0]), z(w_in.shape[1]))
+    layers = range(num_layers(shared))
+    w_in = [shared[kernel_path(i, "input_kernel")] for i in layers]
+    w_h = [shared[kernel_path(i, "recurrent_kernel")] for i in layers]
+    z = lambda n, w: jnp.zeros((batch, slots, n), w.dtype)
+    return Fast(tile(dense, batch), tuple(z(w.shape[0], w) for w in w_in),
+                tuple(z(w.shape[0], w) for w in w_h), tuple(z(w.shape[1], w) for w in w_in))
 
 
 def reset_fast(nav, fast: Fast, mask) -> Fast:
     """Rows where mask (B,) go back to the trained parameters."""
-    return where_rows(mask, init_fast(nav, mask.shape[0], fast.v.shape[1]), fast)
+    return where_rows(mask, init_fast(nav, mask.shape[0], fast.v[0].shape[1]), fast)
 
 
 def materialize(nav, fast: Fast):
     """-> per-row navigation variables (B, ...) with the low-rank updates added (tests)."""
     shared, _ = split_params(nav)
     full = dict(fast.dense)
-    for path, u in LOWRANK.items():
-        full[path] = shared[path][None] + jnp.einsum("bri,bro->bio", getattr(fast, u), fast.v)
+    for i, v in enumerate(fast.v):
+        for name, u in KERNELS.items():
+            full[kernel_path(i, name)] = shared[kernel_path(i, name)][None] + jnp.einsum(
+                "bri,bro->bio", getattr(fast, u)[i], v)
     return traverse_util.unflatten_dict(full)
 
 
@@ -155,40 +184,64 @@ def _unbatch(tree):
     return jax.tree_util.tree_map(lambda x: x[0], tree)
 
 
+def _lowrank(u, v, x):
+    """sum_j (x . u_j) v_j for one step: u (R, n), v (R, 4H), x (n,) -> (4H,). As a
+    multiply-reduce: under vmap the matvecs would be batched dots of M = 1, slower on
+    CPU."""
+    return jnp.sum(jnp.sum(u * x, -1)[:, None] * v, 0)
+
+
 def segment_row(model, shared, dense, ux, uh, v, carry, inputs, pert):
     """One row (episode) for L steps with its fast weights: carry (per layer (c, h), each
-    (H,)), inputs: ModelInputs with leading L, pert (L, 4H) added to the first layer's
-    gates (its gradient is the gate gradient) -> (logits (L, 6), values (L,), h (L, H),
-    carry, x (L, in) the first layer's inputs, h_prev (L, H) its state before each step).
-    The non-recurrent part runs once over the L steps."""
+    (H,)), inputs: ModelInputs with leading L, pert (per layer (L, 4H)) added to each LSTM
+    layer's gates (its gradient is the gate gradient) -> (logits (L, 6), values (L,),
+    h (L, H), carry, x (per layer (L, in_l): the layer's inputs), h_prev (per layer
+    (L, H): its state before each step)). The non-recurrent part runs once over the L
+    steps; the shared kernels are products over the batch (vmap), each layer's updates
+    the low-rank terms added to its gates."""
     variables = merge_params(shared, dense)
+    layer_of = {lstm_module(i): i for i in range(len(v))}
     seen = {}
 
-    def intercept(next_fun, args, kwargs, context):
-        if context.method_name == "project" and tuple(context.module.path) == LSTM0:
+    def embed_hook(next_fun, args, kwargs, context):
+        if context.method_name == "project" and tuple(context.module.path) == lstm_module(0):
             x = args[0]
             seen["x"] = x
-            return next_fun(*args, **kwargs) + (x @ ux.T) @ v
+            return next_fun(*args, **kwargs) + (x @ ux[0].T) @ v[0]
         return next_fun(*args, **kwargs)
 
-    with nn.intercept_methods(intercept):
+    with nn.intercept_methods(embed_hook):
         gates = model.apply(variables, inputs, method=model.embed)
 
     def body(c, xs):
         g, p = xs
-        h_prev = c.lstm[0][1]
-        # (h_prev . uh_j) v_j summed over slots j, as multiply-reduce: under vmap the
-        # matvecs would be batched dots of M = 1, slower on CPU
-        g = g + jnp.sum(jnp.sum(uh * h_prev, -1)[:, None] * v, 0) + p
-        logits, value, c, h = model.apply(variables, g[None], _one(c), method=model.recur)
-        return _unbatch(c), (logits[0], value[0], h[0], h_prev)
+        step = {}
+
+        def hook(next_fun, args, kwargs, context):
+            i = layer_of.get(tuple(context.module.path))
+            if i is not None and context.method_name == "project":     # layers >= 1
+                x = args[0][0]
+                step["x", i] = x
+                return next_fun(*args, **kwargs) + _lowrank(ux[i], v[i], x)[None]
+            if i is not None and context.method_name == "recur":
+                gates_i, (c_i, h_i) = args
+                step["h", i] = h_i[0]
+                return next_fun(gates_i + (_lowrank(uh[i], v[i], h_i[0]) + p[i])[None],
+                                (c_i, h_i))
+            return next_fun(*args, **kwargs)
+
+        with nn.intercept_methods(hook):
+            logits, value, c, h = model.apply(variables, g[None], _one(c), method=model.recur)
+        return _unbatch(c), (logits[0], value[0], h[0],
+                             tuple(step["x", i] for i in range(1, len(v))),
+                             tuple(step["h", i] for i in range(len(v))))
 
     if gates.shape[0] == 1:                           # one step (acting): no loop
-        carry, out = body(carry, (gates[0], pert[0]))
-        logits, values, h, h_prev = _one(out)
+        carry, out = body(carry, (gates[0], tuple(q[0] for q in pert)))
+        logits, values, h, xs, h_prev = _one(out)
     else:
-        carry, (logits, values, h, h_prev) = jax.lax.scan(body, carry, (gates, pert))
-    return logits, values, h, carry, seen["x"], h_prev
+        carry, (logits, values, h, xs, h_prev) = jax.lax.scan(body, carry, (gates, pert))
+    return logits, values, h, carry, (seen["x"],) + xs, h_prev
 
 
 def learned_input(logits, h):
@@ -199,7 +252,7 @@ def learned_input(logits, h):
 def inner_row(model, learned, shared, dense, ux, uh, v, carry, inputs, ll_params, lr,
               slot: int | jax.Array, on, first_order: bool = False):
     """One row: the segment's forward pass and one SGD step (lr; only where `on`) of the
-    learned loss on its fast weights, whose updates of the first LSTM layer's kernels go
+    learned loss on its fast weights, whose updates of the LSTM layers' kernels go
     into slots slot .. slot + L - 1 -> (logits, values, carry, learned loss, new dense,
     ux, uh, v); where not `on` the fast weights come back unchanged. first_order: the
     step's gradient is a constant for outer gradients."""
@@ -212,17 +265,20 @@ def inner_row(model, learned, shared, dense, ux, uh, v, carry, inputs, ll_params
                                                                     x, h_prev)
 
     (ll, (logits, values, carry_out, x, h_prev)), (g_dense, delta) = jax.value_and_grad(
-        loss_of, argnums=(0, 1), has_aux=True)(dense, jnp.zeros((L, v.shape[-1]), v.dtype))
+        loss_of, argnums=(0, 1), has_aux=True)(dense, tuple(
+            jnp.zeros((L, w.shape[-1]), w.dtype) for w in v))
     sg = jax.lax.stop_gradient if first_order else (lambda t: t)
-    step = lr * on.astype(v.dtype)
+    step = lr * on.astype(v[0].dtype)
     dense = jax.tree_util.tree_map(lambda p, g: p - step * sg(g), dense, g_dense)
 
     def put(buf, new):          # slots slot .. slot + L - 1, unchanged where not `on`
         old = jax.lax.dynamic_slice_in_dim(buf, slot, L, 0)
         return jax.lax.dynamic_update_slice_in_dim(buf, jnp.where(on, new, old), slot, 0)
 
-    return (logits, values, carry_out, ll, dense, put(ux, sg(x)), put(uh, sg(h_prev)),
-            put(v, -lr * sg(delta)))
+    return (logits, values, carry_out, ll, dense,
+            tuple(put(b, sg(n)) for b, n in zip(ux, x)),
+            tuple(put(b, sg(n)) for b, n in zip(uh, h_prev)),
+            tuple(put(b, -lr * sg(d)) for b, d in zip(v, delta)))
 
 
 def _v_segment(model):
@@ -301,8 +357,8 @@ def unrolled(body, carry, xs):
     loop buffers: 1.15-1.4x the scan's speed, a 3-5x longer compile (docs/savn.md,
     speed)."""
     outs = []
-    for i in range(xs.shape[0]):
-        carry, y = body(carry, xs[i])
+    for i in range(jax.tree_util.tree_leaves(xs)[0].shape[0]):
+        carry, y = body(carry, jax.tree_util.tree_map(lambda x: x[i], xs))
         outs.append(y)
     return carry, jax.tree_util.tree_map(lambda *a: jnp.stack(a), *outs)
 
@@ -353,7 +409,7 @@ def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: boo
         lstm = reset_carry(lstm, new)
         # (a slot whose v is zero adds nothing: ux, uh of the last episode may stay)
         fast = Fast(where_rows(new, fresh_dense, fast.dense), fast.ux, fast.uh,
-                    fast.v * (~new).astype(fast.v.dtype)[:, None, None])
+                    tuple(v * (~new).astype(v.dtype)[:, None, None] for v in fast.v))
         updates = jnp.where(new, 0, updates)
         ep_return = jnp.where(new, 0.0, ep_return)
         f_sg, lstm_in = sg(fast), lstm
@@ -363,8 +419,7 @@ def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: boo
             inputs = observe(state, lstm)
             logits, _, _, lstm, _, _ = v_segment(
                 sh_sg, f_sg.dense, f_sg.ux, f_sg.uh, f_sg.v, lstm,
-                jax.tree_util.tree_map(lambda x: x[:, None], inputs),
-                jnp.zeros((N, 1, f_sg.v.shape[-1])))
+                jax.tree_util.tree_map(lambda x: x[:, None], inputs), f_sg.zero_pert(1))
             action = jax.random.categorical(key, logits[:, 0]).astype(jnp.int32)
             _, state2, reward, done, info = v_step(state, action, scenes, params_env)
             state = where_rows(running, state2, state)
@@ -412,7 +467,7 @@ def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: boo
     _, boot, *_ = v_segment(sh_sg, f_sg.dense, f_sg.ux, f_sg.uh, f_sg.v, lstm_sg,
                             jax.tree_util.tree_map(lambda x: x[:, None],
                                                    observe(state, lstm_sg)),
-                            jnp.zeros((N, 1, f_sg.v.shape[-1])))
+                            f_sg.zero_pert(1))
     last_value = jnp.where(running, boot[:, 0], 0.0)
     mask = valid.astype(jnp.float32)                 # (T, N)
     adv, ret = gae(reward, sg(values), done, last_value, cfg.gamma, cfg.gae_lambda)
@@ -432,6 +487,18 @@ def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: boo
         aux["trace"] = dict(outs[6], logits=outs[0], valid=outs[5])
     rows = SavnRows(state, lstm_sg, sg(offsets(nav, fast)), updates, ep_return, running)
     return loss, (aux, stats, rows)
+
+
+def legacy_rows(rows: SavnRows) -> SavnRows:
+    """The rows in the layout of config version 8 (its checkpoints; runs.py restores a
+    version-8 runner with jax.eval_shape of this): layer 0's slots as arrays, the other
+    layers' kernel updates as dense per-row offsets (sum_j u_j^T v_j)."""
+    d = rows.delta
+    dense = dict(d.dense)
+    for i in range(1, len(d.v)):
+        for name, u in KERNELS.items():
+            dense[kernel_path(i, name)] = jnp.einsum("bri,bro->bio", getattr(d, u)[i], d.v[i])
+    return rows.replace(delta=Fast(dense, d.ux[0], d.uh[0], d.v[0]))
 
 
 def init_savn_runner(cfg, model, learned, optimizer, scenes, key) -> SavnRunner:
@@ -517,8 +584,7 @@ def savn_policy(model, learned: LearnedLoss, k: int, inner_steps: int, inner_lr:
             lambda b, y: b.at[i].set(y), buf, x))(carry.seg_inputs, inputs, pos)
         one_step = jax.tree_util.tree_map(lambda x: x[:, None], inputs)
         logits, _, _, lstm, _, _ = v_segment(shared, fast.dense, fast.ux, fast.uh, fast.v,
-                                             lstm, one_step,
-                                             jnp.zeros((fresh.shape[0], 1, fast.v.shape[-1])))
+                                             lstm, one_step, fast.zero_pert(1))
         action = choose({"greedy": lambda: jnp.argmax(logits[:, 0], -1),
                          "sample": lambda: jax.random.categorical(key, logits[:, 0])},
                         act_rule, "SAVN test-time actions (savn_act)")().astype(jnp.int32)
