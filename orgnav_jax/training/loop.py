@@ -115,20 +115,28 @@ def savn_runner(cfg: TrainConfig, model, train_scenes):
                                  jax.random.PRNGKey(cfg.seed))
 
 
-# The config version from which a SAVN run's budget counts the env steps its episodes
-# really took (issue 40); before, every episode counted at its cap (episode slots).
-SAVN_REAL_STEPS_VERSION = 7
-SAVN_REFILL_VERSION = savn.REFILL_VERSION      # SAVN's updates refill ended rows
-SAVN_LAYERED_VERSION = savn.LAYERED_VERSION    # its rows' low-rank slots per LSTM layer
+# Config versions whose SAVN runs cannot be resumed by this one (issue 40), each with why:
+# (the first version that does it this way, what a run saved before it did).
+SAVN_RESUME_BREAKS = (
+    # the budget counts the env steps the episodes really took
+    (7, "env_steps count episode slots (every episode at its cap); this version counts the "
+        "env steps the episodes really took"),
+    # the updates refill ended rows (training/savn.py: REFILL_VERSION)
+    (savn.REFILL_VERSION, "updates stepped every episode whole to its cap; this version "
+                          "refills ended rows at segment boundaries and carries running "
+                          "episodes between updates"),
+    # the rows' low-rank slots per LSTM layer (LAYERED_VERSION)
+    (savn.LAYERED_VERSION, "checkpoints hold the running episodes' fast weights with only "
+                           "the first LSTM layer's updates low-rank; this version keeps "
+                           "every layer's low-rank"),
+)
 
 
 def check_savn_resume(run_dir) -> None:
-    """UserError (one line) when run_dir holds a SAVN run whose config predates
-    SAVN_REAL_STEPS_VERSION (its env_steps count episode slots, not real env steps, so
-    continuing it under the new count would mix the two) or SAVN_REFILL_VERSION (its
-    updates stepped whole episodes and its checkpoints hold no running episodes) or
-    SAVN_LAYERED_VERSION (its checkpoints hold the running episodes' fast weights in
-    another layout). Nothing to check without a config.json (a new run)."""
+    """UserError (one line) when run_dir holds a SAVN run of a config version before one
+    of SAVN_RESUME_BREAKS (continuing it would mix two meanings of its count or read its
+    checkpoints in the wrong layout); the first break it predates is named. Nothing to
+    check without a config.json (a new run)."""
     import json
     path = Path(run_dir) / "config.json"
     try:
@@ -136,26 +144,13 @@ def check_savn_resume(run_dir) -> None:
     except (OSError, ValueError):
         return                     # no saved run (or load_config reports the bad file)
     version = doc.get("version") if isinstance(doc, dict) else None
-    if (isinstance(version, int) and version < SAVN_REAL_STEPS_VERSION
-            and doc.get("savn") is True):
-        raise UserError(f"--resume {run_dir}: a SAVN run of config version {version}, whose "
-                        "env_steps count episode slots (every episode at its cap); this "
-                        "version counts the env steps the episodes really took (issue 40): "
-                        "start a new run, or evaluate this one as it is")
-    if (isinstance(version, int) and version < SAVN_REFILL_VERSION
-            and doc.get("savn") is True):
-        raise UserError(f"--resume {run_dir}: a SAVN run of config version {version}, whose "
-                        "updates stepped every episode whole to its cap; this version "
-                        "refills ended rows at segment boundaries and carries running "
-                        "episodes between updates (issue 40): start a new run, or evaluate "
-                        "this one as it is")
-    if (isinstance(version, int) and version < SAVN_LAYERED_VERSION
-            and doc.get("savn") is True):
-        raise UserError(f"--resume {run_dir}: a SAVN run of config version {version}, whose "
-                        "checkpoints hold the running episodes' fast weights with only the "
-                        "first LSTM layer's updates low-rank; this version keeps every "
-                        "layer's low-rank (issue 40, speed): start a new run, or evaluate "
-                        "this one as it is")
+    if not isinstance(version, int) or doc.get("savn") is not True:
+        return
+    for since, why in SAVN_RESUME_BREAKS:
+        if version < since:
+            raise UserError(f"--resume {run_dir}: a SAVN run of config version {version}, "
+                            f"whose {why} (issue 40): start a new run, or evaluate this one "
+                            "as it is")
 
 
 def savn_stage(cfg: TrainConfig, model, train_scenes, val_scenes, val_episodes) -> Stage:
