@@ -30,7 +30,8 @@ row of SAVN training of that model: its env_steps_per_s counts the env steps the
 really took (a row whose episode ended idles to the next segment boundary, where it
 starts a new one), slot_steps_per_s every row step, real_fraction the share of real ones,
 ratio_to_base the real env-steps/s over the base model's (the plain A2C row, timed again
-after the SAVN rows, best of all its runs kept: every step of A2C is real). One untimed
+after the SAVN rows, best of all its runs kept: every step of A2C is real),
+flops_per_row_step the scan-aware FLOP count of the chunk per row step. One untimed
 chunk runs first so that the timed ones start with episodes running in the rows. Both
 rows are timed on the SAVN rows' network, one LSTM layer (TABLE_ROWS["dsavn"], as SAVN's
 release), unless --lstm-layers N says otherwise (it sets the depth of every row).
@@ -313,8 +314,11 @@ def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: 
                                 rows=savn.init_rows(cfg, model, trained.nav, scenes, k_rows))
     chunk = savn.make_savn_chunk(cfg, model, learned, optimizer)
     t0 = time.perf_counter()
-    compiled = chunk.trace(runner, scenes).lower().compile()
+    traced = chunk.trace(runner, scenes)
+    lowered = traced.lower()
+    compiled = lowered.compile()
     compile_s = time.perf_counter() - t0
+    flops = scan_aware_flops(traced.jaxpr, _flops(lowered.cost_analysis()))
     runner, _ = jax.block_until_ready(compiled(runner, scenes))       # rows mid-episode
     best, metrics = float("inf"), None
     for _ in range(repeats):
@@ -330,6 +334,7 @@ def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: 
             "savn_segments": cfg.savn_segments,
             "env_steps_per_s": round(real / best, 1),
             "slot_steps_per_s": round(slots / best, 1), "real_fraction": round(real / slots, 3),
+            "flops_per_row_step": _per_step(flops, slots),
             "compile_s": round(compile_s, 2), "scratch_mb": scratch_mb(compiled),
             "mean_episode_steps": round(float(metrics["length"]) /
                                         max(float(metrics["episodes"]), 1.0), 2),
@@ -499,8 +504,10 @@ def main() -> None:
                               f"{r['env_steps_per_s']:.0f}, best of its runs before and "
                               f"after); {sv['slot_steps_per_s']:.0f} row steps/s, "
                               f"{sv['real_fraction']:.2f} of them real, "
-                              f"{sv['mean_episode_steps']} steps per finished episode; XLA "
-                              f"scratch {sv['scratch_mb']:.0f} MB against "
+                              f"{sv['mean_episode_steps']} steps per finished episode; "
+                              f"{_col(sv['flops_per_row_step'], 0, 1e6).strip()} MFLOP per "
+                              f"row step against {_col(r['flops_per_env_step'], 0, 1e6).strip()}"
+                              f" per env step; XLA scratch {sv['scratch_mb']:.0f} MB against "
                               f"{r['scratch_mb']:.0f} MB)", flush=True)
     print("D: devices (env axis sharded); S: seeds in one program; steps: env-steps per "
           "chunk (all seeds); MFLOP/step: scan-aware count; xla raw: "
