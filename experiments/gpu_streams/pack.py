@@ -6,8 +6,9 @@ most 8 files of 16 MB (63 MB in all):
   sweeps' records (OUT*/*.json, *.md);
 - best_ROW.tar: the best-on-val checkpoints of a finished row that a TPN row of a stream's
   spec builds on (ROW+... in its rows), so its TPN rows can run elsewhere;
-- part_ROW.tar: the latest checkpoints of the most advanced unfinished row of a spec, to
-  resume it elsewhere, if they fit.
+- part_runs.tar: what lets runs go on elsewhere, most advanced first, as many as fit: the
+  latest and best checkpoints of a run stopped short of its budget (a row's or a command
+  stream's), the best checkpoint of a row's run trained but not tested.
 
 An archive over 16 MB is split into NAME.0, NAME.1, ... (`cat NAME.* | tar x`).
 
@@ -52,6 +53,14 @@ def env_steps(run: Path) -> int:
         return 0
 
 
+def budget(run: Path) -> int:
+    """The run's total_env_steps (config.json; 0 when unreadable)."""
+    try:
+        return int(json.loads((run / "config.json").read_text())["total_env_steps"])
+    except (OSError, KeyError, ValueError):
+        return 0
+
+
 def main(out: Path) -> None:
     runs = sorted(r for o in STREAMS.glob("out*") for r in (o / "runs").glob("*")
                   if r.is_dir())
@@ -92,14 +101,31 @@ def main(out: Path) -> None:
         if row in finished:
             write(f"best_{row}.tar",
                   tar_bytes([x for r in by_row[row] for x in newest(r, "best")]))
-    rows = {r for spec in specs for r in spec["rows"]}       # not a command stream's runs
-    unfinished = [(min(map(env_steps, rs)), row) for row, rs in by_row.items()
-                  if row in rows and row not in finished and
-                  all(newest(r, "checkpoints") for r in rs)]
-    for _, row in sorted(unfinished, reverse=True)[:1]:
-        write(f"part_{row}.tar", tar_bytes([x for r in by_row[row]
-                                            for sub in ("checkpoints", "best")
-                                            for x in newest(r, sub)]))
+    # runs to go on elsewhere, most advanced first, as many as fit: a row's run trained but
+    # not tested (its best checkpoint), or any run stopped short of its budget (a row's or
+    # a command stream's: its latest and best checkpoints)
+    rows = {r for spec in specs for r in spec["rows"]}
+    todo = []
+    for run in runs:
+        if "pretrain" in run.name or (run / "test_results.json").exists():
+            continue
+        if env_steps(run) >= budget(run):
+            if run.name.rpartition("-s")[0] in rows:
+                todo.append((float("inf"), run, ("best",)))
+        elif newest(run, "checkpoints"):
+            todo.append((env_steps(run), run, ("checkpoints", "best")))
+    items, room = [], TOTAL_LIMIT - total
+    for _, run, subs in sorted(todo, key=lambda t: -t[0]):
+        these = [x for sub in subs for x in newest(run, sub)]
+        size = sum(f.stat().st_size for path, _ in these for f in path.rglob("*")
+                   if f.is_file())
+        if size + 100_000 * len(these) <= room:             # tar headers, generously
+            items, room = items + these, room - size - 100_000 * len(these)
+            print(f"{run.name}: {', '.join(subs)} packed ({env_steps(run):,} env steps)")
+        else:
+            print(f"{run.name}: {', '.join(subs)} do not fit; left out")
+    if items:
+        write("part_runs.tar", tar_bytes(items))
     print(f"{files} files, {total:,} bytes")
 
 
