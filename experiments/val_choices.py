@@ -17,7 +17,8 @@ experiments/results/before_parity/val_choices.
   `tpn` (placement state, stage-2 optimiser ours), `tpn-release` (placement release),
   `tpn-release-optim` (placement release, the release's stage-2 optimiser and cap);
   lr 0 (the base alone) is in the `tpn` run's file;
-- savn.json: D-SAVN's inner lr and segment length k (2 M env steps), both SAVN rows;
+- savn.json: D-SAVN's inner lr and segment length k (5 M real env steps, issue 40),
+  both SAVN rows;
 - savn_act.json: D-SAVN's val success with greedy and with sampled test-time actions
   (variants `greedy`, `sample`; the same trained runs);
 - savn_optim.json: D-SAVN with our optimiser against SAVN's release's (`dsavn-ours`,
@@ -168,7 +169,7 @@ def markdown(ch: dict) -> str:
     lines = ["| choice | val success / SPL (seeds 100+) | picked |", "|---|---|---|"]
     simple = (("dropout", "dropout (Baseline, 2 M steps)"),
               ("savn_act", "SAVN's test-time actions (D-SAVN)"),
-              ("savn_optim", "SAVN's optimiser (D-SAVN, 2 M steps)"))
+              ("savn_optim", "SAVN's optimiser (D-SAVN, 5 M real steps)"))
     for name, what in simple[:1]:
         if name in ch:
             lines.append(f"| {what} | {cells(ch[name]['val'])} | {ch[name]['value']} |")
@@ -194,7 +195,7 @@ def markdown(ch: dict) -> str:
                      f"{ch['tpn_stage2_optim']['value']}, tpn_lr {c['value']:g} |")
     if "savn_inner_lr" in ch:
         c = ch["savn_inner_lr"]
-        lines.append(f"| D-SAVN inner lr and k (2 M steps) | {cells(c['val'])} | "
+        lines.append(f"| D-SAVN inner lr and k (5 M real steps) | {cells(c['val'])} | "
                      f"`{c['variant']}`: savn_inner_lr {c['value']:g}, savn_steps "
                      f"{ch['savn_steps']['value']} |")
     for name, what in simple[1:]:
