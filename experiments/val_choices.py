@@ -116,7 +116,7 @@ def tpn_choice(root: Path) -> dict:
     scores = {}
     for run in TPN_RUNS:
         lrs = set.intersection(*(set(per[b][run]) for b in bases)) - {"0"}
-        for lr in lrs:
+        for lr in sorted(lrs, key=float):      # (a set: its order varies by run)
             scores[f"{run} @ {lr}"] = mean([per[b][run][lr] for b in bases])
     pick = best(scores)
     run, _, lr = pick.partition(" @ ")
