@@ -2,10 +2,12 @@
 # Train rows of a table spec as parallel streams on one GPU: each stream is its own
 # run_table.py process and out dir (/tmp/g/outN), all stopped at DEADLINE s, then packed
 # into OUT_DIR by pack.py (the runs' small files, best checkpoints of finished TPN bases,
-# the most advanced unfinished row's checkpoints). How the 5 M table's GPU rows were made
-# (docs/results.md); unpack with: tar xzf OUT_DIR/small.tgz -C experiments/results/table_5m,
-# tar xf OUT_DIR/best_ROW.tar -C experiments/results/table_5m, then run_table.py --spec
+# the checkpoints of runs that can go on elsewhere, as many as fit). How the 5 M table's
+# GPU rows were made (docs/results.md); unpack with: tar xzf OUT_DIR/small.tgz -C
+# experiments/results/table_5m, tar xf OUT_DIR/best_ROW.tar -C experiments/results/table_5m
+# (cat OUT_DIR/part_runs.tar* | tar x: to resume or test runs), then run_table.py --spec
 # SPEC --only ROWS rebuilds the table files from them (their runs are finished).
+# SAVN streams: their compile dominates on a GPU (docs/scale_out.md, the third lease).
 # usage: OUT=OUT_DIR [SPEC=spec.json] bash experiments/gpu_streams/run.sh DEADLINE_S COMMIT
 #            "rows of stream 1" "rows of stream 2" ...   (COMMIT: of the clean tree copied)
 #        "ROWS @S1 @S2" trains only those seeds (e.g. one SAVN seed per stream: SAVN runs
