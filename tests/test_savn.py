@@ -167,12 +167,19 @@ def test_fast_weights_never_leak_across_rows_or_episodes(rooms):
     fast = savn.init_fast(nav, 3, 2 * k)
     inputs = segment_inputs(rooms, 3, k)
     carry = model.initial_carry(3)
-    v_inner = jax.jit(jax.vmap(lambda d, ux, uh, v, c, x, on: savn.inner_row(
-        model, learned, shared, d, ux, uh, v, c, x, meta["ll"], 0.5, 0, on),
-        in_axes=(0, 0, 0, 0, 0, 0, 0)))
+    # the trainer's batch form: one gradient of the rows' summed learned losses
+    v_inner = jax.jit(lambda d, ux, uh, v, c, x, on: savn.inner_rows(
+        model, learned, shared, d, ux, uh, v, c, x, meta["ll"], 0.5, jnp.zeros(3, jnp.int32),
+        on))
     on = jnp.array([True, False, True])
     out = v_inner(fast.dense, fast.ux, fast.uh, fast.v, carry, inputs, on)
     new = savn.Fast(*out[4:])
+    # ... is each row's own step: row 2 alone gives the same fast weights
+    alone = savn.inner_row(model, learned, shared, *jax.tree_util.tree_map(
+        lambda x: x[2], (fast.dense, fast.ux, fast.uh, fast.v, carry, inputs)), meta["ll"],
+        0.5, 0, True)
+    for a, b in zip(jax.tree_util.tree_leaves(alone[4:]), jax.tree_util.tree_leaves(out[4:])):
+        np.testing.assert_allclose(a, b[2], rtol=1e-5, atol=1e-7)
     weights = savn.materialize(nav, new)
     base = savn.materialize(nav, fast)
     row = lambda t, i: [np.asarray(x[i]) for x in jax.tree_util.tree_leaves(t)]

@@ -30,6 +30,7 @@ savn_inner_steps x k slots per layer.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any
 
 import flax.linen as nn
@@ -185,63 +186,88 @@ def _unbatch(tree):
 
 
 def _lowrank(u, v, x):
-    """sum_j (x . u_j) v_j for one step: u (R, n), v (R, 4H), x (n,) -> (4H,). As a
-    multiply-reduce: under vmap the matvecs would be batched dots of M = 1, slower on
-    CPU."""
-    return jnp.sum(jnp.sum(u * x, -1)[:, None] * v, 0)
+    """sum_j (x . u_j) v_j for one step: u (R, n), v (R, 4H), x (n,) -> (4H,) (under vmap:
+    batched matrix-vector products; a multiply-reduce was 8x slower on CPU)."""
+    return (u @ x) @ v
 
 
-def segment_row(model, shared, dense, ux, uh, v, carry, inputs, pert):
-    """One row (episode) for L steps with its fast weights: carry (per layer (c, h), each
-    (H,)), inputs: ModelInputs with leading L, pert (per layer (L, 4H)) added to each LSTM
-    layer's gates (its gradient is the gate gradient) -> (logits (L, 6), values (L,),
-    h (L, H), carry, x (per layer (L, in_l): the layer's inputs), h_prev (per layer
-    (L, H): its state before each step)). The non-recurrent part runs once over the L
-    steps; the shared kernels are products over the batch (vmap), each layer's updates
-    the low-rank terms added to its gates."""
-    variables = merge_params(shared, dense)
-    layer_of = {lstm_module(i): i for i in range(len(v))}
+def embed_row(model, shared, dense, ux0, v0, inputs):
+    """One row's non-recurrent part over L steps: inputs (ModelInputs, leading L) ->
+    (the first LSTM layer's input gates (L, 4H) with its low-rank updates added, that
+    layer's input x (L, in_0))."""
     seen = {}
 
-    def embed_hook(next_fun, args, kwargs, context):
+    def hook(next_fun, args, kwargs, context):
         if context.method_name == "project" and tuple(context.module.path) == lstm_module(0):
             x = args[0]
             seen["x"] = x
-            return next_fun(*args, **kwargs) + (x @ ux[0].T) @ v[0]
+            return next_fun(*args, **kwargs) + (x @ ux0.T) @ v0
         return next_fun(*args, **kwargs)
 
-    with nn.intercept_methods(embed_hook):
-        gates = model.apply(variables, inputs, method=model.embed)
+    with nn.intercept_methods(hook):
+        gates = model.apply(merge_params(shared, dense), inputs, method=model.embed)
+    return gates, seen["x"]
+
+
+def step_row(model, shared, dense, ux, uh, v, carry, gates, pert):
+    """One row, one step of the recurrence and the heads: gates (4H,) from embed_row,
+    pert (per layer (4H,)) -> (carry, (logits (6,), value (), h (H,), x (per layer >= 1
+    its input (H,)), h_prev (per layer its state before the step (H,))))."""
+    layer_of = {lstm_module(i): i for i in range(len(v))}
+    step = {}
+
+    def hook(next_fun, args, kwargs, context):
+        i = layer_of.get(tuple(context.module.path))
+        if i is not None and context.method_name == "project":     # layers >= 1
+            x = args[0][0]
+            step["x", i] = x
+            return next_fun(*args, **kwargs) + _lowrank(ux[i], v[i], x)[None]
+        if i is not None and context.method_name == "recur":
+            gates_i, (c_i, h_i) = args
+            step["h", i] = h_i[0]
+            return next_fun(gates_i + (_lowrank(uh[i], v[i], h_i[0]) + pert[i])[None],
+                            (c_i, h_i))
+        return next_fun(*args, **kwargs)
+
+    with nn.intercept_methods(hook):
+        logits, value, c, h = model.apply(merge_params(shared, dense), gates[None], _one(carry),
+                                          method=model.recur)
+    return _unbatch(c), (logits[0], value[0], h[0],
+                         tuple(step["x", i] for i in range(1, len(v))),
+                         tuple(step["h", i] for i in range(len(v))))
+
+
+def segment_rows(model, shared, dense, ux, uh, v, carry, inputs, pert):
+    """B rows (episodes) for L steps with their fast weights: dense, ux, uh, v (leading
+    B), carry (per layer (c, h), each (B, H)), inputs: ModelInputs (B, L, ...), pert (per
+    layer (B, L, 4H)) added to each LSTM layer's gates (its gradient is the gate gradient)
+    -> (logits (B, L, 6), values (B, L), h (B, L, H), carry, x (per layer (B, L, in_l):
+    the layer's inputs), h_prev (per layer (B, L, H): its state before each step)). The
+    non-recurrent part runs once over the L steps (embed_row); the recurrence is a scan
+    over time whose step runs every row (step_row under vmap): the shared kernels are
+    products over the batch, each row's updates the low-rank terms added to its gates."""
+    gates, x0 = jax.vmap(embed_row, in_axes=(None, None, 0, 0, 0, 0))(
+        model, shared, dense, ux[0], v[0], inputs)
+    v_step = jax.vmap(step_row, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0))
+    time_major = lambda t: jax.tree_util.tree_map(lambda y: jnp.swapaxes(y, 0, 1), t)
 
     def body(c, xs):
-        g, p = xs
-        step = {}
+        return v_step(model, shared, dense, ux, uh, v, c, *xs)
 
-        def hook(next_fun, args, kwargs, context):
-            i = layer_of.get(tuple(context.module.path))
-            if i is not None and context.method_name == "project":     # layers >= 1
-                x = args[0][0]
-                step["x", i] = x
-                return next_fun(*args, **kwargs) + _lowrank(ux[i], v[i], x)[None]
-            if i is not None and context.method_name == "recur":
-                gates_i, (c_i, h_i) = args
-                step["h", i] = h_i[0]
-                return next_fun(gates_i + (_lowrank(uh[i], v[i], h_i[0]) + p[i])[None],
-                                (c_i, h_i))
-            return next_fun(*args, **kwargs)
-
-        with nn.intercept_methods(hook):
-            logits, value, c, h = model.apply(variables, g[None], _one(c), method=model.recur)
-        return _unbatch(c), (logits[0], value[0], h[0],
-                             tuple(step["x", i] for i in range(1, len(v))),
-                             tuple(step["h", i] for i in range(len(v))))
-
-    if gates.shape[0] == 1:                           # one step (acting): no loop
-        carry, out = body(carry, (gates[0], tuple(q[0] for q in pert)))
-        logits, values, h, xs, h_prev = _one(out)
+    if gates.shape[1] == 1:                           # one step (acting): no loop
+        carry, out = body(carry, (gates[:, 0], tuple(q[:, 0] for q in pert)))
+        out = jax.tree_util.tree_map(lambda y: y[:, None], out)
     else:
-        carry, (logits, values, h, xs, h_prev) = jax.lax.scan(body, carry, (gates, pert))
-    return logits, values, h, carry, (seen["x"],) + xs, h_prev
+        carry, out = jax.lax.scan(body, carry, time_major((gates, pert)))
+        out = time_major(out)
+    logits, values, h, xs, h_prev = out
+    return logits, values, h, carry, (x0,) + xs, h_prev
+
+
+def segment_row(model, shared, dense, ux, uh, v, carry, inputs, pert):
+    """segment_rows for one row (no leading B anywhere)."""
+    out = segment_rows(model, shared, *_one((dense, ux, uh, v, carry, inputs, pert)))
+    return _unbatch(out)
 
 
 def learned_input(logits, h):
@@ -249,49 +275,46 @@ def learned_input(logits, h):
     return jnp.concatenate([h, jax.nn.softmax(logits)], axis=-1)
 
 
-def inner_row(model, learned, shared, dense, ux, uh, v, carry, inputs, ll_params, lr,
-              slot: int | jax.Array, on, first_order: bool = False):
-    """One row: the segment's forward pass and one SGD step (lr; only where `on`) of the
-    learned loss on its fast weights, whose updates of the LSTM layers' kernels go
-    into slots slot .. slot + L - 1 -> (logits, values, carry, learned loss, new dense,
-    ux, uh, v); where not `on` the fast weights come back unchanged. first_order: the
-    step's gradient is a constant for outer gradients."""
-    L = jax.tree_util.tree_leaves(inputs)[0].shape[0]
+def inner_rows(model, learned, shared, dense, ux, uh, v, carry, inputs, ll_params, lr,
+               slot, on, first_order: bool = False):
+    """B rows: the segment's forward pass (segment_rows) and one SGD step (lr; only where
+    `on` (B,)) of each row's learned loss on its fast weights, whose updates of the LSTM
+    layers' kernels go into slots slot .. slot + L - 1 (slot (B,)) -> (logits, values,
+    carry, learned loss (B,), new dense, ux, uh, v); where not `on` the fast weights come
+    back unchanged. first_order: the step's gradient is a constant for outer gradients."""
+    B, L = jax.tree_util.tree_leaves(inputs)[0].shape[:2]
 
-    def loss_of(dense, pert):
-        logits, values, h, carry_out, x, h_prev = segment_row(model, shared, dense, ux, uh, v,
-                                                              carry, inputs, pert)
-        return learned.apply(ll_params, learned_input(logits, h)), (logits, values, carry_out,
-                                                                    x, h_prev)
+    def loss_of(dense, pert):            # rows are independent: the sum's gradient is
+        logits, values, h, carry_out, x, h_prev = segment_rows(   # each row's own
+            model, shared, dense, ux, uh, v, carry, inputs, pert)
+        ll = jax.vmap(lambda lg, hh: learned.apply(ll_params, learned_input(lg, hh)))(
+            logits, h)
+        return ll.sum(), (ll, logits, values, carry_out, x, h_prev)
 
-    (ll, (logits, values, carry_out, x, h_prev)), (g_dense, delta) = jax.value_and_grad(
+    (_, (ll, logits, values, carry_out, x, h_prev)), (g_dense, delta) = jax.value_and_grad(
         loss_of, argnums=(0, 1), has_aux=True)(dense, tuple(
-            jnp.zeros((L, w.shape[-1]), w.dtype) for w in v))
+            jnp.zeros((B, L, w.shape[-1]), w.dtype) for w in v))
     sg = jax.lax.stop_gradient if first_order else (lambda t: t)
     step = lr * on.astype(v[0].dtype)
-    dense = jax.tree_util.tree_map(lambda p, g: p - step * sg(g), dense, g_dense)
 
-    def put(buf, new):          # slots slot .. slot + L - 1, unchanged where not `on`
+    def put(buf, new, slot, on):   # slots slot .. slot + L - 1, unchanged where not `on`
         old = jax.lax.dynamic_slice_in_dim(buf, slot, L, 0)
         return jax.lax.dynamic_update_slice_in_dim(buf, jnp.where(on, new, old), slot, 0)
 
-    return (logits, values, carry_out, ll, dense,
-            tuple(put(b, sg(n)) for b, n in zip(ux, x)),
-            tuple(put(b, sg(n)) for b, n in zip(uh, h_prev)),
-            tuple(put(b, -lr * sg(d)) for b, d in zip(v, delta)))
+    put_rows = lambda bufs, news: tuple(jax.vmap(put)(b, sg(n), slot, on)
+                                        for b, n in zip(bufs, news))
+    dense = jax.tree_util.tree_map(
+        lambda p, g: p - step.reshape((B,) + (1,) * (p.ndim - 1)) * sg(g), dense, g_dense)
+    return (logits, values, carry_out, ll, dense, put_rows(ux, x), put_rows(uh, h_prev),
+            put_rows(v, tuple(-lr * d for d in delta)))
 
 
-def _v_segment(model):
-    return jax.vmap(lambda shared, dense, ux, uh, v, carry, inputs, pert: segment_row(
-        model, shared, dense, ux, uh, v, carry, inputs, pert),
-        in_axes=(None, 0, 0, 0, 0, 0, 0, 0))
-
-
-def _v_inner(model, learned, first_order):
-    return jax.vmap(lambda shared, dense, ux, uh, v, carry, inputs, ll, lr, slot, on:
-                    inner_row(model, learned, shared, dense, ux, uh, v, carry, inputs, ll,
-                              lr, slot, on, first_order),
-                    in_axes=(None, 0, 0, 0, 0, 0, 0, None, None, 0, 0))
+def inner_row(model, learned, shared, dense, ux, uh, v, carry, inputs, ll_params, lr,
+              slot: int | jax.Array, on, first_order: bool = False):
+    """inner_rows for one row (no leading B; slot and on scalars)."""
+    batched = _one((dense, ux, uh, v, carry, inputs)) + (ll_params, lr) + _one(
+        (jnp.asarray(slot), jnp.asarray(on)))
+    return _unbatch(inner_rows(model, learned, shared, *batched, first_order=first_order))
 
 
 def check_savn_config(cfg) -> None:
@@ -391,7 +414,8 @@ def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: boo
     v_reset = jax.vmap(env.reset, in_axes=(0, None, None))
     v_step = jax.vmap(env.step_env, in_axes=(0, 0, None, None))
     v_observe = jax.vmap(env.observe, in_axes=(0, None))
-    v_segment, v_inner = _v_segment(model), _v_inner(model, learned, cfg.savn_first_order)
+    v_segment = partial(segment_rows, model)
+    v_inner = partial(inner_rows, model, learned, first_order=cfg.savn_first_order)
     sg = jax.lax.stop_gradient
     sh_sg = sg(shared)
 
@@ -560,7 +584,8 @@ def savn_policy(model, learned: LearnedLoss, k: int, inner_steps: int, inner_lr:
     `inner_steps` segments of k steps of an episode, one SGD step (inner_lr) of the
     learned loss on that episode's fast weights (reset at each episode start).
     policy_params = {"nav", "ll"}; widths = scene_widths(scenes) (the segment buffer)."""
-    v_segment, v_inner = _v_segment(model), _v_inner(model, learned, True)
+    v_segment = partial(segment_rows, model)
+    v_inner = partial(inner_rows, model, learned, first_order=True)
     slots = max(inner_steps * k, 1)
 
     def init(batch, params):
