@@ -36,8 +36,9 @@ import tempfile
 import time
 from pathlib import Path
 
-os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
-                           " --xla_cpu_enable_xprof_traceme=true").strip()
+if __name__ == "__main__":               # before jax is imported (not when a test imports it)
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                               " --xla_cpu_enable_xprof_traceme=true").strip()
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import jax  # noqa: E402
