@@ -43,10 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import jax  # noqa: E402
 
-from orgnav_jax.models import build_model  # noqa: E402
-from orgnav_jax.training import savn  # noqa: E402
 from orgnav_jax.training.config import get_config  # noqa: E402
-from orgnav_jax.training.update import make_optimizer  # noqa: E402
 
 
 def op_metadata(hlo_text: str) -> dict[str, tuple[str, str]]:
@@ -60,18 +57,20 @@ def op_metadata(hlo_text: str) -> dict[str, tuple[str, str]]:
     return meta
 
 
-def op_times(trace_dir: str, meta: dict) -> collections.Counter:
-    """{HLO op name: total microseconds} of the trace's events that are ops of `meta`."""
+def op_times(trace_dir: str, meta: dict) -> dict[str, tuple[float, int]]:
+    """{HLO op name: (total microseconds, events)} of the trace's events that are ops of
+    `meta`."""
     path = glob.glob(f"{trace_dir}/**/*.trace.json.gz", recursive=True)
     if not path:
         raise SystemExit(f"savn_profile: no trace file under {trace_dir}")
     events = json.load(gzip.open(path[0]))
     events = events["traceEvents"] if isinstance(events, dict) else events
-    total = collections.Counter()
+    total, count = collections.Counter(), collections.Counter()
     for e in events:
         if e.get("ph") == "X" and e.get("name") in meta:
             total[e["name"]] += e.get("dur", 0)
-    return total
+            count[e["name"]] += 1
+    return {name: (total[name], count[name]) for name in total}
 
 
 def short(op_name: str) -> str:
@@ -99,19 +98,10 @@ def main() -> None:
     else:
         trained = None
         cfg = get_config(args.preset)
-        scenes = tt.bench_scenes(tt.load_or_build("tiny"), args.preset)
+        scenes = tt.bench_scenes(tt.tiny_train_scenes(), args.preset)
     cfg = dataclasses.replace(cfg, savn=True, num_envs=args.num_envs,
                               updates_per_chunk=1).validate()
-    model, learned = build_model(cfg, scenes), savn.build_learned_loss()
-    optimizer = make_optimizer(cfg)
-    runner = savn.init_savn_runner(cfg, model, learned, optimizer, scenes,
-                                   jax.random.PRNGKey(cfg.seed))
-    if trained is not None:
-        params = {"nav": trained.nav, "ll": trained.ll or runner.params["ll"]}
-        runner = runner.replace(params=params, opt_state=optimizer.init(params),
-                                rows=savn.init_rows(cfg, model, trained.nav, scenes,
-                                                    jax.random.fold_in(runner.key, 1)))
-    chunk = savn.make_savn_chunk(cfg, model, learned, optimizer)
+    chunk, runner = tt.savn_chunk_and_runner(cfg, scenes, trained)
     t0 = time.perf_counter()
     compiled = chunk.lower(runner, scenes).compile()
     print(f"compile {time.perf_counter() - t0:.1f} s", flush=True)
@@ -125,24 +115,27 @@ def main() -> None:
         wall = (time.perf_counter() - t0) / args.chunks
         meta = op_metadata(compiled.as_text())
         times = op_times(tmp, meta)
-    per = {k: v / 1e3 / args.chunks for k, v in times.items()}       # ms per update
+    per = {k: us / 1e3 / args.chunks for k, (us, _) in times.items()}   # ms per update
     print(f"{cfg.num_envs} rows x {cfg.savn_segments} segments x {cfg.savn_steps} steps; "
           f"wall {wall * 1e3:.0f} ms per update (traced), op time {sum(per.values()):.0f} ms")
-    order, kind, by_op = (collections.Counter() for _ in range(3))
+    order, kind, by_op, runs = (collections.Counter() for _ in range(4))
     for name, ms in per.items():
         shape, op = meta[name]
         order[(op.count("transpose("), op.count("jvp("))] += ms
         kind[re.sub(r"\.\d+$", "", name)] += ms
-        by_op[(short(op)[-90:], shape, re.sub(r"\.\d+$", "", name))] += ms
+        key = (short(op)[-90:], shape, re.sub(r"\.\d+$", "", name))
+        by_op[key] += ms
+        runs[key] += times[name][1] / args.chunks
     print("\nby (transposes, jvps) in the op's path, ms per update:")
     for k, ms in order.most_common():
         print(f"  {str(k):8s} {ms:7.1f}")
     print("\nby op kind, ms per update:")
     for k, ms in kind.most_common(12):
         print(f"  {k:40s} {ms:7.1f}")
-    print(f"\ntop {args.top} ops (op_name, shape, kind), ms per update:")
-    for (op, shape, k), ms in by_op.most_common(args.top):
-        print(f"  {ms:6.1f}  {k:22s} {shape:22s} {op}")
+    print(f"\ntop {args.top} ops (op_name, shape, kind): ms and executions per update")
+    for key, ms in by_op.most_common(args.top):
+        op, shape, k = key
+        print(f"  {ms:6.1f} {runs[key]:5.0f}  {k:22s} {shape:22s} {op}")
 
 
 if __name__ == "__main__":

@@ -302,17 +302,7 @@ def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: 
     if lstm_layers:
         over["lstm_layers"] = lstm_layers
     cfg = row_config(preset, trained, **over)
-    model = build_model(cfg, scenes)
-    optimizer = make_optimizer(cfg)
-    learned = savn.build_learned_loss()
-    runner = savn.init_savn_runner(cfg, model, learned, optimizer, scenes,
-                                   jax.random.PRNGKey(cfg.seed))
-    if trained is not None:
-        params = {"nav": trained.nav, "ll": trained.ll or runner.params["ll"]}
-        k_rows = jax.random.fold_in(runner.key, 1)
-        runner = runner.replace(params=params, opt_state=optimizer.init(params),
-                                rows=savn.init_rows(cfg, model, trained.nav, scenes, k_rows))
-    chunk = savn.make_savn_chunk(cfg, model, learned, optimizer)
+    chunk, runner = savn_chunk_and_runner(cfg, scenes, trained)
     t0 = time.perf_counter()
     traced = chunk.trace(runner, scenes)
     lowered = traced.lower()
@@ -339,6 +329,29 @@ def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: 
             "mean_episode_steps": round(float(metrics["length"]) /
                                         max(float(metrics["episodes"]), 1.0), 2),
             "trained": trained.label if trained else None, "_run_s": best}
+
+
+def savn_chunk_and_runner(cfg, scenes, trained: "Trained | None" = None):
+    """A SAVN config's jitted chunk (savn.make_savn_chunk) and a runner to time it with:
+    fresh, or with `trained`'s parameters (a SAVN run's {"nav", "ll"}, a plain run's
+    network with a fresh learned loss) and rows started from them."""
+    from orgnav_jax.training import savn
+    model, learned = build_model(cfg, scenes), savn.build_learned_loss()
+    optimizer = make_optimizer(cfg)
+    runner = savn.init_savn_runner(cfg, model, learned, optimizer, scenes,
+                                   jax.random.PRNGKey(cfg.seed))
+    if trained is not None:
+        params = {"nav": trained.nav, "ll": trained.ll or runner.params["ll"]}
+        k_rows = jax.random.fold_in(runner.key, 1)
+        runner = runner.replace(params=params, opt_state=optimizer.init(params),
+                                rows=savn.init_rows(cfg, model, trained.nav, scenes, k_rows))
+    return savn.make_savn_chunk(cfg, model, learned, optimizer), runner
+
+
+def tiny_train_scenes():
+    """The tiny preset's train split (built and cached once): the rooms every preset's
+    row is timed on (bench_scenes swaps in the preset's feature widths)."""
+    return load_or_build("tiny", progress=False).split_view("train")
 
 
 @dataclasses.dataclass
@@ -454,7 +467,7 @@ def main() -> None:
     print(f"fp32 matmul peak (2048^3, best of {args.matmul_repeats}): {peak:.1f} GFLOP/s "
           "(measured again after the rows; the larger is kept)", flush=True)
 
-    base = load_or_build("tiny", progress=False).split_view("train")
+    base = tiny_train_scenes()
     head = (f"{'preset':6} {'model':9} {'D':>2} {'S':>2} {'dtype':8} {'N':>4} {'T':>3} "
             f"{'steps':>6} {'compile s':>9} "
             f"{'run s':>7} {'env-steps/s':>11} {'MFLOP/step':>10} {'xla raw':>8} "

@@ -38,4 +38,4 @@ def test_op_metadata_and_times_are_read_from_the_hlo_and_the_trace(tmp_path):
     trace.mkdir(parents=True)
     with gzip.open(trace / "host.trace.json.gz", "wt") as f:
         json.dump({"traceEvents": events}, f)
-    assert sp.op_times(str(tmp_path), meta) == {"dot.12": 2000}
+    assert sp.op_times(str(tmp_path), meta) == {"dot.12": (2000, 2)}

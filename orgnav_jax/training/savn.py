@@ -186,9 +186,10 @@ def _unbatch(tree):
 
 
 def _lowrank(u, v, x):
-    """sum_j (x . u_j) v_j for one step: u (R, n), v (R, 4H), x (n,) -> (4H,) (under vmap:
-    batched matrix-vector products; a multiply-reduce was 8x slower on CPU)."""
-    return (u @ x) @ v
+    """sum_j (x . u_j) v_j: u (R, n), v (R, 4H), x (..., n) -> (..., 4H). Products (under
+    vmap, batched ones); a multiply-reduce over the slots ran at about 1 GFLOP/s on CPU
+    (docs/savn.md, speed)."""
+    return (x @ u.T) @ v
 
 
 def embed_row(model, shared, dense, ux0, v0, inputs):
@@ -201,7 +202,7 @@ def embed_row(model, shared, dense, ux0, v0, inputs):
         if context.method_name == "project" and tuple(context.module.path) == lstm_module(0):
             x = args[0]
             seen["x"] = x
-            return next_fun(*args, **kwargs) + (x @ ux0.T) @ v0
+            return next_fun(*args, **kwargs) + _lowrank(ux0, v0, x)
         return next_fun(*args, **kwargs)
 
     with nn.intercept_methods(hook):
@@ -248,11 +249,11 @@ def segment_rows(model, shared, dense, ux, uh, v, carry, inputs, pert):
     products over the batch, each row's updates the low-rank terms added to its gates."""
     gates, x0 = jax.vmap(embed_row, in_axes=(None, None, 0, 0, 0, 0))(
         model, shared, dense, ux[0], v[0], inputs)
-    v_step = jax.vmap(step_row, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0))
+    rows_step = jax.vmap(step_row, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0))
     time_major = lambda t: jax.tree_util.tree_map(lambda y: jnp.swapaxes(y, 0, 1), t)
 
     def body(c, xs):
-        return v_step(model, shared, dense, ux, uh, v, c, *xs)
+        return rows_step(model, shared, dense, ux, uh, v, c, *xs)
 
     if gates.shape[1] == 1:                           # one step (acting): no loop
         carry, out = body(carry, (gates[:, 0], tuple(q[:, 0] for q in pert)))
