@@ -74,9 +74,25 @@ class NavModel(nn.Module):
     def recur(self, gates, carry: NavCarry):
         """Input gates (B, 4H), carry -> (logits (B, 6), value (B,), carry, LSTM output);
         the new carry holds this step's action probabilities."""
-        logits, value, lstm, h = self.trunk.recur(gates, carry.lstm)
+        carry, h = self.lstm_step(gates, carry)
+        logits, value = self.heads(h)
+        return logits, value, self.with_probs(carry, logits), h
+
+    def lstm_step(self, gates, carry: NavCarry):
+        """The recurrence without the heads: -> (carry with the LSTM state advanced and
+        the probabilities as they were, LSTM output (B, H)); see with_probs."""
+        lstm, h = self.trunk.lstm_step(gates, carry.lstm)
+        return carry.replace(lstm=lstm), h
+
+    def heads(self, h):
+        """LSTM output (..., H) -> (logits (..., 6), value (...))."""
+        return self.trunk.heads(h)
+
+    @staticmethod
+    def with_probs(carry: NavCarry, logits) -> NavCarry:
+        """The carry holding the action probabilities of `logits` (B, 6) (no gradient)."""
         probs = jax.lax.stop_gradient(jax.nn.softmax(logits)).astype(carry.probs.dtype)
-        return logits, value, NavCarry(lstm, probs), h
+        return carry.replace(probs=probs)
 
     def __call__(self, inputs: ModelInputs, carry: NavCarry, train: bool = False):
         """One step from the env's inputs -> (logits (B, 6), value (B,), new carry, LSTM

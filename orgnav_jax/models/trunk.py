@@ -159,15 +159,26 @@ class Trunk(nn.Module):
     def recur(self, gates, carry):
         """First-layer input gates (B, 4*hidden), carry -> (logits (B, 6), value (B,),
         new carry, LSTM output (B, hidden))."""
+        new_carry, x = self.lstm_step(gates, carry)
+        logits, value = self.heads(x)
+        return logits, value, new_carry, x
+
+    def lstm_step(self, gates, carry):
+        """The recurrence alone: first-layer input gates (B, 4*hidden), carry -> (new
+        carry, LSTM output (B, hidden))."""
         new_carry, x = [], None
         for i, layer_carry in enumerate(carry):
             layer_gates = gates if i == 0 else self.lstm[i].project(x)
             layer_carry, x = self.lstm[i].recur(layer_gates, layer_carry)
             new_carry.append(layer_carry)
+        return tuple(new_carry), x
+
+    def heads(self, x):
+        """LSTM output (..., hidden) -> (logits (..., 6), value (...))."""
         logits = self.actor(x)
         v = self.critic_hidden(x)
-        value = self.critic(v if self.release else nn.relu(v))[:, 0]
-        return logits, value, tuple(new_carry), x
+        value = self.critic(v if self.release else nn.relu(v))[..., 0]
+        return logits, value
 
     def __call__(self, glob, cat_maps, prev_action, carry):
         """-> (logits (B, 6), value (B,), new carry, LSTM output (B, hidden))."""

@@ -185,56 +185,60 @@ def _unbatch(tree):
     return jax.tree_util.tree_map(lambda x: x[0], tree)
 
 
-def _lowrank(u, v, x):
-    """sum_j (x . u_j) v_j: u (R, n), v (R, 4H), x (..., n) -> (..., 4H). Products (under
-    vmap, batched ones); a multiply-reduce over the slots ran at about 1 GFLOP/s on CPU
-    (docs/savn.md, speed)."""
-    return (x @ u.T) @ v
+def _coef(u, x):
+    """x's coefficients on the slots, x . u_j: u (R, n), x (..., n) -> (..., R). The
+    low-rank term of a layer is (x . ux_j + h . uh_j) summed against v_j (_lowrank): one
+    product with v per step for both kernels (a matrix-vector product per row under
+    vmap; a multiply-reduce over the slots ran at about 1 GFLOP/s on CPU, docs/savn.md)."""
+    return x @ u.T
 
 
-def embed_row(model, shared, dense, ux0, v0, inputs):
+def _lowrank(coef, v):
+    """sum_j coef_j v_j: coef (..., R), v (R, 4H) -> (..., 4H)."""
+    return coef @ v
+
+
+def embed_row(model, shared, dense, ux0, inputs):
     """One row's non-recurrent part over L steps: inputs (ModelInputs, leading L) ->
-    (the first LSTM layer's input gates (L, 4H) with its low-rank updates added, that
-    layer's input x (L, in_0))."""
+    (the first LSTM layer's input gates (L, 4H) from the shared kernel, that layer's
+    input x (L, in_0), x's coefficients on the layer's input slots (L, R); step_row adds
+    the low-rank term)."""
     seen = {}
 
     def hook(next_fun, args, kwargs, context):
         if context.method_name == "project" and tuple(context.module.path) == lstm_module(0):
-            x = args[0]
-            seen["x"] = x
-            return next_fun(*args, **kwargs) + _lowrank(ux0, v0, x)
+            seen["x"] = args[0]
         return next_fun(*args, **kwargs)
 
     with nn.intercept_methods(hook):
         gates = model.apply(merge_params(shared, dense), inputs, method=model.embed)
-    return gates, seen["x"]
+    return gates, seen["x"], _coef(ux0, seen["x"])
 
 
-def step_row(model, shared, dense, ux, uh, v, carry, gates, pert):
-    """One row, one step of the recurrence and the heads: gates (4H,) from embed_row,
-    pert (per layer (4H,)) -> (carry, (logits (6,), value (), h (H,), x (per layer >= 1
-    its input (H,)), h_prev (per layer its state before the step (H,))))."""
+def step_row(model, shared, dense, ux, uh, v, carry, gates, coef0, pert):
+    """One row, one step of the recurrence (no heads): gates (4H,) and coef0 (R,) from
+    embed_row, pert (per layer (4H,)) -> (carry, (h (H,), x (per layer >= 1 its input
+    (H,)), h_prev (per layer its state before the step (H,)))). Each layer's gates get
+    its low-rank term (x . ux_j + h . uh_j) v_j and `pert`."""
     layer_of = {lstm_module(i): i for i in range(len(v))}
     step = {}
 
     def hook(next_fun, args, kwargs, context):
         i = layer_of.get(tuple(context.module.path))
         if i is not None and context.method_name == "project":     # layers >= 1
-            x = args[0][0]
-            step["x", i] = x
-            return next_fun(*args, **kwargs) + _lowrank(ux[i], v[i], x)[None]
+            step["x", i] = args[0][0]
+            return next_fun(*args, **kwargs)
         if i is not None and context.method_name == "recur":
             gates_i, (c_i, h_i) = args
             step["h", i] = h_i[0]
-            return next_fun(gates_i + (_lowrank(uh[i], v[i], h_i[0]) + pert[i])[None],
-                            (c_i, h_i))
+            coef = (coef0 if i == 0 else _coef(ux[i], step["x", i])) + _coef(uh[i], h_i[0])
+            return next_fun(gates_i + (_lowrank(coef, v[i]) + pert[i])[None], (c_i, h_i))
         return next_fun(*args, **kwargs)
 
     with nn.intercept_methods(hook):
-        logits, value, c, h = model.apply(merge_params(shared, dense), gates[None], _one(carry),
-                                          method=model.recur)
-    return _unbatch(c), (logits[0], value[0], h[0],
-                         tuple(step["x", i] for i in range(1, len(v))),
+        c, h = model.apply(merge_params(shared, dense), gates[None], _one(carry),
+                           method=model.lstm_step)
+    return _unbatch(c), (h[0], tuple(step["x", i] for i in range(1, len(v))),
                          tuple(step["h", i] for i in range(len(v))))
 
 
@@ -246,23 +250,27 @@ def segment_rows(model, shared, dense, ux, uh, v, carry, inputs, pert):
     the layer's inputs), h_prev (per layer (B, L, H): its state before each step)). The
     non-recurrent part runs once over the L steps (embed_row); the recurrence is a scan
     over time whose step runs every row (step_row under vmap): the shared kernels are
-    products over the batch, each row's updates the low-rank terms added to its gates."""
-    gates, x0 = jax.vmap(embed_row, in_axes=(None, None, 0, 0, 0, 0))(
-        model, shared, dense, ux[0], v[0], inputs)
-    rows_step = jax.vmap(step_row, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0))
+    products over the batch, each row's updates the low-rank terms added to its gates;
+    the heads run once over the L steps after the scan."""
+    gates, x0, coef0 = jax.vmap(embed_row, in_axes=(None, None, 0, 0, 0))(
+        model, shared, dense, ux[0], inputs)
+    rows_step = jax.vmap(step_row, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0, 0))
     time_major = lambda t: jax.tree_util.tree_map(lambda y: jnp.swapaxes(y, 0, 1), t)
 
     def body(c, xs):
         return rows_step(model, shared, dense, ux, uh, v, c, *xs)
 
     if gates.shape[1] == 1:                           # one step (acting): no loop
-        carry, out = body(carry, (gates[:, 0], tuple(q[:, 0] for q in pert)))
+        carry, out = body(carry, (gates[:, 0], coef0[:, 0], tuple(q[:, 0] for q in pert)))
         out = jax.tree_util.tree_map(lambda y: y[:, None], out)
     else:
-        carry, out = jax.lax.scan(body, carry, time_major((gates, pert)))
+        carry, out = jax.lax.scan(body, carry, time_major((gates, coef0, pert)))
         out = time_major(out)
-    logits, values, h, xs, h_prev = out
-    return logits, values, h, carry, (x0,) + xs, h_prev
+    h, xs, h_prev = out
+    # the heads are outside the recurrence: once over the L steps, not in the scan
+    logits, values = jax.vmap(lambda d, hh: model.apply(merge_params(shared, d), hh,
+                                                        method=model.heads))(dense, h)
+    return logits, values, h, model.with_probs(carry, logits[:, -1]), (x0,) + xs, h_prev
 
 
 def segment_row(model, shared, dense, ux, uh, v, carry, inputs, pert):
