@@ -226,19 +226,18 @@ def step_row(model, shared, dense, ux, uh, v, carry, gates, coef0, pert):
     def hook(next_fun, args, kwargs, context):
         i = layer_of.get(tuple(context.module.path))
         if i is not None and context.method_name == "project":     # layers >= 1
-            step["x", i] = args[0][0]
+            step["x", i] = args[0]
             return next_fun(*args, **kwargs)
         if i is not None and context.method_name == "recur":
             gates_i, (c_i, h_i) = args
-            step["h", i] = h_i[0]
-            coef = (coef0 if i == 0 else _coef(ux[i], step["x", i])) + _coef(uh[i], h_i[0])
-            return next_fun(gates_i + (_lowrank(coef, v[i]) + pert[i])[None], (c_i, h_i))
+            step["h", i] = h_i
+            coef = (coef0 if i == 0 else _coef(ux[i], step["x", i])) + _coef(uh[i], h_i)
+            return next_fun(gates_i + _lowrank(coef, v[i]) + pert[i], (c_i, h_i))
         return next_fun(*args, **kwargs)
 
     with nn.intercept_methods(hook):
-        c, h = model.apply(merge_params(shared, dense), gates[None], _one(carry),
-                           method=model.lstm_step)
-    return _unbatch(c), (h[0], tuple(step["x", i] for i in range(1, len(v))),
+        c, h = model.apply(merge_params(shared, dense), gates, carry, method=model.lstm_step)
+    return c, (h, tuple(step["x", i] for i in range(1, len(v))),
                          tuple(step["h", i] for i in range(len(v))))
 
 
