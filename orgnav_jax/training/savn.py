@@ -58,6 +58,8 @@ REFILL_VERSION = 8
 LAYERED_VERSION = 9
 
 KERNELS = {"input_kernel": "ux", "recurrent_kernel": "uh"}   # low-rank, per LSTM layer
+VALUE_HEAD = ("critic_hidden", "critic")    # the trunk's modules the learned loss does not
+                                            # reach: shared by the rows (split_params)
 
 
 def lstm_module(i: int) -> tuple[str, str]:
@@ -129,13 +131,23 @@ class SavnRunner:
 
 
 def split_params(nav):
-    """Navigation variables -> (shared: every LSTM layer's input and recurrent kernels,
-    dense: the rest), flat dicts {path: array}."""
+    """Navigation variables -> (shared: what every row uses as it is, dense: per-row
+    copies, the rest), flat dicts {path: array}. Shared: every LSTM layer's input and
+    recurrent kernels (each row's updates of them are its low-rank slots) and the value
+    head (VALUE_HEAD): the learned loss reads the LSTM output and the action distribution,
+    not the value, so the value head's inner gradient is zero and every row's copy would
+    be the meta-parameters themselves (kept per row until issue 40's speed work)."""
     flat = traverse_util.flatten_dict(nav)
     if kernel_path(0, "input_kernel") not in flat:
         raise ValueError(f"SAVN: the model has no {'/'.join(kernel_path(0, 'input_kernel'))}")
     low = {kernel_path(i, n) for i in range(num_layers(flat)) for n in KERNELS}
+    low |= value_head(flat)
     return ({p: flat[p] for p in low}, {p: x for p, x in flat.items() if p not in low})
+
+
+def value_head(flat) -> set:
+    """The value head's paths in a flat parameter dict (the trunk's VALUE_HEAD modules)."""
+    return {p for p in flat if len(p) >= 4 and p[1] == "trunk" and p[2] in VALUE_HEAD}
 
 
 def num_layers(flat_or_shared) -> int:
@@ -169,7 +181,8 @@ def reset_fast(nav, fast: Fast, mask) -> Fast:
 def materialize(nav, fast: Fast):
     """-> per-row navigation variables (B, ...) with the low-rank updates added (tests)."""
     shared, _ = split_params(nav)
-    full = dict(fast.dense)
+    B = fast.v[0].shape[0]
+    full = {**fast.dense, **tile(shared, B)}
     for i, v in enumerate(fast.v):
         for name, u in KERNELS.items():
             full[kernel_path(i, name)] = shared[kernel_path(i, name)][None] + jnp.einsum(
@@ -217,28 +230,26 @@ def embed_row(model, shared, dense, ux0, inputs):
 
 def step_row(model, shared, dense, ux, uh, v, carry, gates, coef0, pert):
     """One row, one step of the recurrence (no heads): gates (4H,) and coef0 (R,) from
-    embed_row, pert (per layer (4H,)) -> (carry, (h (H,), x (per layer >= 1 its input
-    (H,)), h_prev (per layer its state before the step (H,)))). Each layer's gates get
-    its low-rank term (x . ux_j + h . uh_j) v_j and `pert`."""
+    embed_row, pert (per layer (4H,)) -> (carry, each layer's state h after the step
+    (per layer (H,))). Each layer's gates get its low-rank term (x . ux_j + h . uh_j) v_j
+    (x its input, h its state before the step) and `pert`."""
     layer_of = {lstm_module(i): i for i in range(len(v))}
-    step = {}
+    x_of = {}
 
     def hook(next_fun, args, kwargs, context):
         i = layer_of.get(tuple(context.module.path))
         if i is not None and context.method_name == "project":     # layers >= 1
-            step["x", i] = args[0]
+            x_of[i] = args[0]
             return next_fun(*args, **kwargs)
         if i is not None and context.method_name == "recur":
             gates_i, (c_i, h_i) = args
-            step["h", i] = h_i
-            coef = (coef0 if i == 0 else _coef(ux[i], step["x", i])) + _coef(uh[i], h_i)
+            coef = (coef0 if i == 0 else _coef(ux[i], x_of[i])) + _coef(uh[i], h_i)
             return next_fun(gates_i + _lowrank(coef, v[i]) + pert[i], (c_i, h_i))
         return next_fun(*args, **kwargs)
 
     with nn.intercept_methods(hook):
-        c, h = model.apply(merge_params(shared, dense), gates, carry, method=model.lstm_step)
-    return c, (h, tuple(step["x", i] for i in range(1, len(v))),
-                         tuple(step["h", i] for i in range(len(v))))
+        c, _ = model.apply(merge_params(shared, dense), gates, carry, method=model.lstm_step)
+    return c, tuple(h for _, h in c.lstm)
 
 
 def segment_rows(model, shared, dense, ux, uh, v, carry, inputs, pert):
@@ -249,8 +260,9 @@ def segment_rows(model, shared, dense, ux, uh, v, carry, inputs, pert):
     the layer's inputs), h_prev (per layer (B, L, H): its state before each step)). The
     non-recurrent part runs once over the L steps (embed_row); the recurrence is a scan
     over time whose step runs every row (step_row under vmap): the shared kernels are
-    products over the batch, each row's updates the low-rank terms added to its gates;
-    the heads run once over the L steps after the scan."""
+    products over the batch, each row's updates the low-rank terms added to its gates.
+    The scan yields each layer's states only (the inputs of layers >= 1 and the states
+    before each step are those, shifted); the heads run once over the L steps after it."""
     gates, x0, coef0 = jax.vmap(embed_row, in_axes=(None, None, 0, 0, 0))(
         model, shared, dense, ux[0], inputs)
     rows_step = jax.vmap(step_row, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0, 0))
@@ -259,17 +271,19 @@ def segment_rows(model, shared, dense, ux, uh, v, carry, inputs, pert):
     def body(c, xs):
         return rows_step(model, shared, dense, ux, uh, v, c, *xs)
 
+    h0 = tuple(h for _, h in carry.lstm)
     if gates.shape[1] == 1:                           # one step (acting): no loop
-        carry, out = body(carry, (gates[:, 0], coef0[:, 0], tuple(q[:, 0] for q in pert)))
-        out = jax.tree_util.tree_map(lambda y: y[:, None], out)
+        carry, hs = body(carry, (gates[:, 0], coef0[:, 0], tuple(q[:, 0] for q in pert)))
+        hs = tuple(h[:, None] for h in hs)
     else:
-        carry, out = jax.lax.scan(body, carry, time_major((gates, coef0, pert)))
-        out = time_major(out)
-    h, xs, h_prev = out
+        carry, hs = jax.lax.scan(body, carry, time_major((gates, coef0, pert)))
+        hs = time_major(hs)
+    h_prev = tuple(jnp.concatenate([a[:, None], h[:, :-1]], axis=1) for a, h in zip(h0, hs))
     # the heads are outside the recurrence: once over the L steps, not in the scan
     logits, values = jax.vmap(lambda d, hh: model.apply(merge_params(shared, d), hh,
-                                                        method=model.heads))(dense, h)
-    return logits, values, h, model.with_probs(carry, logits[:, -1]), (x0,) + xs, h_prev
+                                                        method=model.heads))(dense, hs[-1])
+    return (logits, values, hs[-1], model.with_probs(carry, logits[:, -1]), (x0,) + hs[:-1],
+            h_prev)
 
 
 def segment_row(model, shared, dense, ux, uh, v, carry, inputs, pert):
@@ -352,18 +366,24 @@ def init_meta(model, learned: LearnedLoss, cfg, scenes, key):
 
 
 def fast_over(nav, delta: Fast) -> Fast:
-    """Rows' fast weights from their offsets over the meta-parameters `nav`: dense
-    nav + delta.dense, the low-rank slots as they are (they are offsets already)."""
+    """Rows' fast weights from their offsets over the meta-parameters `nav` (SavnRows'
+    `delta`): dense nav + delta.dense, the low-rank slots as they are (they are offsets
+    already). delta.dense also holds the value head's offsets, always zero (see offsets);
+    they are dropped."""
     _, dense = split_params(nav)
-    return delta.replace(dense=jax.tree_util.tree_map(lambda p, d: p[None] + d, dense,
-                                                      delta.dense))
+    return delta.replace(dense={p: x[None] + delta.dense[p] for p, x in dense.items()})
 
 
 def offsets(nav, fast: Fast) -> Fast:
-    """The inverse of fast_over: the rows' fast weights as offsets over `nav`."""
-    _, dense = split_params(nav)
-    return fast.replace(dense=jax.tree_util.tree_map(lambda f, p: f - p[None], fast.dense,
-                                                     dense))
+    """The inverse of fast_over: the rows' fast weights as offsets over `nav`, with the
+    value head's (zero: split_params) added, so that the rows' checkpoints keep the layout
+    of config version 9 (every parameter but the LSTM kernels per row)."""
+    shared, dense = split_params(nav)
+    B = fast.v[0].shape[0]
+    zeros = {p: jnp.zeros((B,) + x.shape, x.dtype) for p, x in shared.items()
+             if p in value_head(shared)}
+    return fast.replace(dense={**zeros, **{p: f - dense[p][None]
+                                           for p, f in fast.dense.items()}})
 
 
 def init_rows(cfg, model, nav, scenes, key) -> SavnRows:
