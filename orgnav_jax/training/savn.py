@@ -199,11 +199,14 @@ def _unbatch(tree):
 
 
 def _coef(u, x):
-    """x's coefficients on the slots, x . u_j: u (R, n), x (..., n) -> (..., R). The
-    low-rank term of a layer is (x . ux_j + h . uh_j) summed against v_j (_lowrank): one
-    product with v per step for both kernels (a matrix-vector product per row under
-    vmap; a multiply-reduce over the slots ran at about 1 GFLOP/s on CPU, docs/savn.md)."""
-    return x @ u.T
+    """x's coefficients on the slots, x . u_j: u (R, n), x (n,) or (L, n) -> (R,) or
+    (L, R). The low-rank term of a layer is (x . ux_j + h . uh_j) summed against v_j
+    (_lowrank): one product with v per step for both kernels (a matrix-vector product per
+    row under vmap; a multiply-reduce over the slots ran at about 1 GFLOP/s on CPU,
+    docs/savn.md). Written u @ x^T, not x @ u^T: the gradient for u then comes out in u's
+    own layout (R, n), where x @ u^T's came as (n, R) and was transposed, a copy of the
+    whole slot buffer, in every segment."""
+    return u @ x if x.ndim == 1 else (u @ x.T).T
 
 
 def _lowrank(coef, v):
