@@ -18,7 +18,9 @@ The trunk is split in two so that training can batch the non-recurrent part over
 `embed` maps one step's inputs to the first LSTM layer's input gates (B, 4*hidden) and
 does not depend on earlier steps; `recur` runs the recurrence and the heads. In the loss
 `embed` runs once over all T*N steps of a rollout (large matmuls) and only `recur` is
-scanned. The LSTM cell is flax's (gates i, f, g, o; input kernels lecun-normal, recurrent
+scanned. `recur` is `lstm_step` (the LSTM layers) then `heads` (actor and critic);
+SAVN's segments scan `lstm_step` alone and run the heads once after the scan
+(training/savn.py). The LSTM cell is flax's (gates i, f, g, o; input kernels lecun-normal, recurrent
 kernels orthogonal per gate, zero bias), with its input projection done in `embed`.
 
 Mixed precision (`dtype=jnp.bfloat16`, TrainConfig.dtype): the layers up to the LSTM
