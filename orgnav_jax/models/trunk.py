@@ -20,8 +20,9 @@ does not depend on earlier steps; `recur` runs the recurrence and the heads. In 
 `embed` runs once over all T*N steps of a rollout (large matmuls) and only `recur` is
 scanned. `recur` is `lstm_step` (the LSTM layers) then `heads` (actor and critic);
 SAVN's segments scan `lstm_step` alone and run the heads once after the scan
-(training/savn.py). The LSTM cell is flax's (gates i, f, g, o; input kernels lecun-normal, recurrent
-kernels orthogonal per gate, zero bias), with its input projection done in `embed`.
+(training/savn.py). The LSTM cell is flax's (gates i, f, g, o; input kernels
+lecun-normal, recurrent kernels orthogonal per gate, zero bias), with its input
+projection done in `embed`.
 
 Mixed precision (`dtype=jnp.bfloat16`, TrainConfig.dtype): the layers up to the LSTM
 compute in bf16 (flax's `dtype`; parameters stay float32, flax's `param_dtype`); the LSTM

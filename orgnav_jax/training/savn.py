@@ -136,7 +136,7 @@ def split_params(nav):
     recurrent kernels (each row's updates of them are its low-rank slots) and the value
     head (VALUE_HEAD): the learned loss reads the LSTM output and the action distribution,
     not the value, so the value head's inner gradient is zero and every row's copy would
-    be the meta-parameters themselves (kept per row until issue 40's speed work)."""
+    be the meta-parameters themselves (per-row copies before 2026-12-05)."""
     flat = traverse_util.flatten_dict(nav)
     if kernel_path(0, "input_kernel") not in flat:
         raise ValueError(f"SAVN: the model has no {'/'.join(kernel_path(0, 'input_kernel'))}")
