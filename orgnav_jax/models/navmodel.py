@@ -75,7 +75,7 @@ class NavModel(nn.Module):
         """Input gates (B, 4H), carry -> (logits (B, 6), value (B,), carry, LSTM output);
         the new carry holds this step's action probabilities."""
         carry, h = self.lstm_step(gates, carry)
-        logits, value = self.heads(h)
+        logits, value = self.actor_critic(h)
         return logits, value, self.with_probs(carry, logits), h
 
     def lstm_step(self, gates, carry: NavCarry):
@@ -84,9 +84,9 @@ class NavModel(nn.Module):
         lstm, h = self.trunk.lstm_step(gates, carry.lstm)
         return carry.replace(lstm=lstm), h
 
-    def heads(self, h):
+    def actor_critic(self, h):
         """LSTM output (..., H) -> (logits (..., 6), value (...))."""
-        return self.trunk.heads(h)
+        return self.trunk.actor_critic(h)
 
     @staticmethod
     def with_probs(carry: NavCarry, logits) -> NavCarry:

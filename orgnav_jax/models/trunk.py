@@ -18,7 +18,7 @@ The trunk is split in two so that training can batch the non-recurrent part over
 `embed` maps one step's inputs to the first LSTM layer's input gates (B, 4*hidden) and
 does not depend on earlier steps; `recur` runs the recurrence and the heads. In the loss
 `embed` runs once over all T*N steps of a rollout (large matmuls) and only `recur` is
-scanned. `recur` is `lstm_step` (the LSTM layers) then `heads` (actor and critic);
+scanned. `recur` is `lstm_step` (the LSTM layers) then `actor_critic` (the heads);
 SAVN's segments scan `lstm_step` alone and run the heads once after the scan
 (training/savn.py). The LSTM cell is flax's (gates i, f, g, o; input kernels
 lecun-normal, recurrent kernels orthogonal per gate, zero bias), with its input
@@ -163,7 +163,7 @@ class Trunk(nn.Module):
         """First-layer input gates (B, 4*hidden), carry -> (logits (B, 6), value (B,),
         new carry, LSTM output (B, hidden))."""
         new_carry, x = self.lstm_step(gates, carry)
-        logits, value = self.heads(x)
+        logits, value = self.actor_critic(x)
         return logits, value, new_carry, x
 
     def lstm_step(self, gates, carry):
@@ -176,7 +176,7 @@ class Trunk(nn.Module):
             new_carry.append(layer_carry)
         return tuple(new_carry), x
 
-    def heads(self, x):
+    def actor_critic(self, x):
         """LSTM output (..., hidden) -> (logits (..., 6), value (...))."""
         logits = self.actor(x)
         v = self.critic_hidden(x)

@@ -283,8 +283,8 @@ def segment_rows(model, shared, dense, ux, uh, v, carry, inputs, pert):
         hs = time_major(hs)
     h_prev = tuple(jnp.concatenate([a[:, None], h[:, :-1]], axis=1) for a, h in zip(h0, hs))
     # the heads are outside the recurrence: once over the L steps, not in the scan
-    logits, values = jax.vmap(lambda d, hh: model.apply(merge_params(shared, d), hh,
-                                                        method=model.heads))(dense, hs[-1])
+    heads = lambda d, hh: model.apply(merge_params(shared, d), hh, method=model.actor_critic)
+    logits, values = jax.vmap(heads)(dense, hs[-1])
     return (logits, values, hs[-1], model.with_probs(carry, logits[:, -1]), (x0,) + hs[:-1],
             h_prev)
 
