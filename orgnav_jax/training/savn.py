@@ -201,16 +201,17 @@ def _unbatch(tree):
 def _coef(u, x):
     """x's coefficients on the slots, x . u_j: u (R, n), x (n,) or (L, n) -> (R,) or
     (L, R). The low-rank term of a layer is (x . ux_j + h . uh_j) summed against v_j
-    (_lowrank): one product with v per step for both kernels (a matrix-vector product per
-    row under vmap; a multiply-reduce over the slots ran at about 1 GFLOP/s on CPU,
-    docs/savn.md). Written u @ x^T, not x @ u^T: the gradient for u then comes out in u's
-    own layout (R, n), where x @ u^T's came as (n, R) and was transposed, a copy of the
-    whole slot buffer, in every segment."""
+    (_lowrank): one product with v per step for both kernels. Written u @ x^T, not
+    x @ u^T: the gradient for u then comes out in u's own layout (R, n); x @ u^T's came
+    as (n, R) and was transposed (in the compiled update, the (64, 24, 784) transposes
+    and copies went from 14 to 8, docs/savn.md)."""
     return u @ x if x.ndim == 1 else (u @ x.T).T
 
 
 def _lowrank(coef, v):
-    """sum_j coef_j v_j: coef (..., R), v (R, 4H) -> (..., 4H)."""
+    """sum_j coef_j v_j: coef (..., R), v (R, 4H) -> (..., 4H). A product (under vmap, a
+    batched matrix-vector product); a multiply-reduce over the slots ran at about
+    1 GFLOP/s on CPU (docs/savn.md, speed)."""
     return coef @ v
 
 
@@ -257,15 +258,17 @@ def step_row(model, shared, dense, ux, uh, v, carry, gates, coef0, pert):
 
 def segment_rows(model, shared, dense, ux, uh, v, carry, inputs, pert):
     """B rows (episodes) for L steps with their fast weights: dense, ux, uh, v (leading
-    B), carry (per layer (c, h), each (B, H)), inputs: ModelInputs (B, L, ...), pert (per
-    layer (B, L, 4H)) added to each LSTM layer's gates (its gradient is the gate gradient)
-    -> (logits (B, L, 6), values (B, L), h (B, L, H), carry, x (per layer (B, L, in_l):
-    the layer's inputs), h_prev (per layer (B, L, H): its state before each step)). The
-    non-recurrent part runs once over the L steps (embed_row); the recurrence is a scan
-    over time whose step runs every row (step_row under vmap): the shared kernels are
-    products over the batch, each row's updates the low-rank terms added to its gates.
-    The scan yields each layer's states only (the inputs of layers >= 1 and the states
-    before each step are those, shifted); the heads run once over the L steps after it."""
+    B); carry: NavCarry (per LSTM layer (c, h), each (B, H); the previous step's action
+    probabilities (B, 6)); inputs: ModelInputs (B, L, ...); pert (per layer (B, L, 4H))
+    added to each LSTM layer's gates (its gradient is the gate gradient) -> (logits
+    (B, L, 6), values (B, L), h (B, L, H), carry (holding the last step's probabilities),
+    x (per layer (B, L, in_l): the layer's inputs), h_prev (per layer (B, L, H): its state
+    before each step)). The non-recurrent part runs once over the L steps (embed_row); the
+    recurrence is a scan over time whose step runs every row (step_row under vmap): the
+    shared kernels are products over the batch, each row's updates the low-rank terms
+    added to its gates. The scan yields each layer's states only (the inputs of layers
+    >= 1 and the states before each step are those, shifted); the heads run once over the
+    L steps after it."""
     gates, x0, coef0 = jax.vmap(embed_row, in_axes=(None, None, 0, 0, 0))(
         model, shared, dense, ux[0], inputs)
     rows_step = jax.vmap(step_row, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0, 0))
@@ -383,8 +386,8 @@ def offsets(nav, fast: Fast) -> Fast:
     of config version 9 (every parameter but the LSTM kernels per row)."""
     shared, dense = split_params(nav)
     B = fast.v[0].shape[0]
-    zeros = {p: jnp.zeros((B,) + x.shape, x.dtype) for p, x in shared.items()
-             if p in value_head(shared)}
+    zeros = {p: jnp.zeros((B,) + shared[p].shape, shared[p].dtype)
+             for p in value_head(shared)}
     return fast.replace(dense={**zeros, **{p: f - dense[p][None]
                                            for p, f in fast.dense.items()}})
 
