@@ -101,7 +101,7 @@ class Fast:
     v: tuple              # (B, R, 4H)    -lr x layer l's gate gradient there (0: unused)
 
     def zero_pert(self, steps: int) -> tuple:
-        """Zero gate perturbations (B, steps, 4H) per layer (segment_row's `pert`)."""
+        """Zero gate perturbations (B, steps, 4H) per layer (segment_rows' `pert`)."""
         return tuple(jnp.zeros((v.shape[0], steps, v.shape[-1]), v.dtype) for v in self.v)
 
 
@@ -443,8 +443,8 @@ def savn_loss(meta, rows: SavnRows, model, learned, cfg, scenes, key, trace: boo
     N, k, U = cfg.num_envs, cfg.savn_steps, cfg.savn_segments
     params_env = train_env_params(cfg)
     nav = meta["nav"]
-    shared, _ = split_params(nav)
-    fresh_dense = tile(split_params(nav)[1], N)
+    shared, meta_dense = split_params(nav)
+    fresh_dense = tile(meta_dense, N)
     v_reset = jax.vmap(env.reset, in_axes=(0, None, None))
     v_step = jax.vmap(env.step_env, in_axes=(0, 0, None, None))
     v_observe = jax.vmap(env.observe, in_axes=(0, None))
