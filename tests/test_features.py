@@ -125,11 +125,13 @@ def test_detection_arrays_well_formed(tiny_scenes):
     assert hit[vis].mean() > 0.6
 
 
-def _room_detections(room, seed, fp):
+def _room_detections(room, seed, fp, **knobs):
     from orgnav_jax.scenes.synthetic import builder
+    from orgnav_jax.scenes.synthetic.perception import Perception
     assert room.floorplan == fp
     cells = geometry.reachable_cells(room.reachable)
-    return builder.room_detections(room, seed, cells, geometry.state_poses(cells))
+    return builder.room_detections(room, seed, cells, geometry.state_poses(cells),
+                                   Perception(**knobs))
 
 
 def test_detection_pipeline_matches_room_arrays():
@@ -141,13 +143,12 @@ def test_detection_pipeline_matches_room_arrays():
     np.testing.assert_array_equal(ra.appearance, code)
 
 
-def test_large_categories_detected_farther_than_small(sample_rooms, monkeypatch):
-    monkeypatch.setattr(detector, "FALSE_POSITIVE_RATE", 0.0)
+def test_large_categories_detected_farther_than_small(sample_rooms):
     large, small = ("Fridge", "Television"), ("CellPhone", "RemoteControl")
     dists = {c: [] for c in large + small}
     for fp in (1, 2, 3, 201, 202, 203):
         room = sample_rooms[fp]
-        seen, dist, _, conf, _ = _room_detections(room, 0, fp)
+        seen, dist, _, conf, _ = _room_detections(room, 0, fp, false_positive_rate=0.0)
         for name in dists:
             c = K.category_index(name)
             ks = np.flatnonzero(room.obj_category == c)

@@ -3,6 +3,7 @@
     python -m orgnav_jax.scenes build --preset small --out data/small [--seed 0]
     python -m orgnav_jax.scenes build --preset large --num-rooms 10 --out data/large10
     python -m orgnav_jax.scenes build --preset small --anchor-probability 0 --out data/p0
+    python -m orgnav_jax.scenes build --preset small --perception confusion=0.2 --out data/c
     python -m orgnav_jax.scenes info data/small
     python -m orgnav_jax.scenes info small            # a preset's cached set (built if new)
     python -m orgnav_jax.scenes show 201 [--seed 0] [--room-sizes thor]  # ASCII top view
@@ -14,6 +15,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -26,6 +28,7 @@ from orgnav_jax.scenes.sceneset.storage import disk_size, is_scene_set, load, sa
 from orgnav_jax.scenes.summary import format_summary, summarize
 from orgnav_jax.scenes.synthetic.builder import build
 from orgnav_jax.scenes.synthetic.layout import ROOM_SIZE_PROFILES, generate_room, render_ascii
+from orgnav_jax.scenes.synthetic.perception import parse_knobs
 from orgnav_jax.scenes.synthetic.presets import SCENE_PRESETS, get_preset
 from orgnav_jax.scenes.synthetic.raw import build_raw_to
 
@@ -50,6 +53,9 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("--anchor-probability", type=float, metavar="P",
                    help="how often an object with anchors is placed by one (0: anywhere, "
                         "1: always; default 0.85, the generator's): the co-occurrence knob")
+    b.add_argument("--perception", nargs="+", metavar="NAME=VALUE",
+                   help="perception knobs over the preset's (docs/benchmark.md), e.g. "
+                        "global_labels=none global_noise=0.5 confusion=0.2")
     b.add_argument("--json", action="store_true", help="also print the summary as JSON")
     i = sub.add_parser("info", help="summarize a saved benchmark")
     i.add_argument("path", help="a SceneSet directory, or a preset name for its cached set "
@@ -90,6 +96,9 @@ def main(argv: list[str] | None = None) -> int:
                                        ("anchor_probability", args.anchor_probability))
                      if v is not None}
         preset = get_preset(args.preset, **overrides)
+        if args.perception:
+            preset = get_preset(preset, perception=dataclasses.replace(
+                preset.perception, **parse_knobs(args.perception)))
         t0 = time.perf_counter()
         if preset.raw:  # decoded features streamed to disk (synthetic/raw.py)
             scenes = build_raw_to(preset, args.seed, args.out, progress=True)

@@ -15,6 +15,7 @@ from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 from orgnav_jax.scenes.synthetic import detector, geometry, global_view
 from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
 from orgnav_jax.scenes.synthetic.layout import Room, generate_room
+from orgnav_jax.scenes.synthetic.perception import Perception, degrade_detections, degrade_global
 from orgnav_jax.scenes.synthetic.presets import ScenePreset, get_preset
 
 
@@ -42,8 +43,10 @@ class RoomArrays:
             features={k: getattr(self, k) for k in assemble.FEATURE_FIELDS})
 
 
-def room_detections(room: Room, seed: int, cells: np.ndarray, poses: np.ndarray):
-    """Line of sight and the detector run on every state of a room.
+def room_detections(room: Room, seed: int, cells: np.ndarray, poses: np.ndarray,
+                    perception: Perception = Perception()):
+    """Line of sight and the detector (with `perception`'s knobs) run on every state of
+    a room.
 
     Returns seen (S, K) and horizontal distance (S, K) per object instance, and
     det_box (S, C, 4), det_conf (S, C), appearance code (S, C, Da) per category.
@@ -53,20 +56,31 @@ def room_detections(room: Room, seed: int, cells: np.ndarray, poses: np.ndarray)
     seen, dist, _ = geometry.object_visibility(poses, cells, los, room.obj_center)
     boxes = detector.project_boxes(poses, room.obj_center, room.obj_size, room.obj_height)
     det_rng = np.random.default_rng([seed, room.floorplan, 1])
-    det_box, det_conf, code = detector.detect(det_rng, seen, dist, boxes, room.obj_category)
+    det_box, det_conf, code = detector.detect(det_rng, seen, dist, boxes, room.obj_category,
+                                              perception)
+    if perception.confusion > 0 or perception.box_jitter > 0:   # a stream of their own:
+        knob_rng = np.random.default_rng([seed, room.floorplan, 3])  # the rest unchanged
+        det_box, det_conf, code = degrade_detections(det_box, det_conf, code, perception,
+                                                     knob_rng)
     return seen, dist, det_box, det_conf, code
 
 
 def room_arrays(seed: int, floorplan: int, split: str, room: Room | None = None,
                 room_sizes: str = "default",
-                anchor_probability: float = ANCHOR_PROBABILITY) -> RoomArrays:
+                anchor_probability: float = ANCHOR_PROBABILITY,
+                perception: Perception = Perception()) -> RoomArrays:
     """Everything precomputed for one room (pure function of seed, floorplan, the
-    room-size profile and the anchor probability)."""
+    room-size profile, the anchor probability and the perception knobs)."""
     room = room if room is not None else generate_room(
         seed, floorplan, room_sizes=room_sizes, anchor_probability=anchor_probability)
     cells = geometry.reachable_cells(room.reachable)
     poses = geometry.state_poses(cells)
-    seen, dist, det_box, det_conf, app_code = room_detections(room, seed, cells, poses)
+    seen, dist, det_box, det_conf, app_code = room_detections(room, seed, cells, poses,
+                                                              perception)
+    global_feat = global_view.global_codes(room, cells)
+    if perception != Perception():
+        global_feat = degrade_global(global_feat, perception,
+                                     np.random.default_rng([seed, floorplan, 4]))
     present = np.zeros(NUM_CATEGORIES, bool)
     present[room.obj_category] = True
     return RoomArrays(
@@ -75,7 +89,7 @@ def room_arrays(seed: int, floorplan: int, split: str, room: Room | None = None,
         next_state=geometry.transitions(cells, room.wall.shape), pose=poses,
         visible=geometry.category_visible(seen, dist, room.obj_category, NUM_CATEGORIES),
         present=present, det_box=det_box, det_conf=det_conf, appearance=app_code,
-        global_feat=global_view.global_codes(room, cells),
+        global_feat=global_feat,
     )
 
 
@@ -114,7 +128,7 @@ def build(preset: str | ScenePreset = "small", seed: int = 0, *, progress: bool 
                          f"{p.name} --out DIR (or scenes.build_to), then load DIR")
     plans = p.floorplans()
     rooms = [room_arrays(seed, fp, split, room_sizes=p.room_sizes,
-                         anchor_probability=p.anchor_probability)
+                         anchor_probability=p.anchor_probability, perception=p.perception)
              for fp, _, split in tqdm(plans, desc=f"rooms ({p.name})", disable=not progress,
                                       unit="room")]
     info = FORMAT_INFO + (("preset", p.name), ("seed", int(seed)),
@@ -123,4 +137,5 @@ def build(preset: str | ScenePreset = "small", seed: int = 0, *, progress: bool 
         info += (("room_sizes", p.room_sizes), ("num_rooms", len(plans)))
     if p.anchor_probability != ANCHOR_PROBABILITY:     # (default sets keep their info)
         info += (("anchor_probability", float(p.anchor_probability)),)
+    info += tuple(("perception." + k, v) for k, v in p.perception.changed().items())
     return stack_rooms(rooms, info=info, **feature_bases(p))

@@ -13,12 +13,11 @@ import numpy as np
 from orgnav_jax.constants import CATEGORIES, IMAGE_SIZE, NUM_CATEGORIES
 from orgnav_jax.scenes.synthetic.catalog import OBJECTS
 from orgnav_jax.scenes.synthetic.geometry import to_camera
+from orgnav_jax.scenes.synthetic.perception import Perception
 
 DETECT_RANGE = np.array([OBJECTS[c].detect_range for c in CATEGORIES], np.float32)
 MAX_DETECT_DISTANCE = 6.5      # metres; beyond this nothing is detected
-PEAK_RECALL = 0.95             # detection probability right in front of an object
 RANGE_SOFTNESS = 0.3           # metres: how quickly recall falls off past the range
-FALSE_POSITIVE_RATE = 0.01     # per state and category
 APPEARANCE_CODE_DIM = 8        # stored code width per (state, category)
 
 _BOX_CORNERS = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)])
@@ -43,19 +42,24 @@ def project_boxes(poses: np.ndarray, obj_center: np.ndarray, obj_size: np.ndarra
 
 
 def detect(rng: np.random.Generator, seen: np.ndarray, dist: np.ndarray, boxes: np.ndarray,
-           obj_category: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+           obj_category: np.ndarray, p: Perception = Perception()
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run the detector model on every state.
 
-    seen, dist: (S, K) from geometry.object_visibility; boxes: (S, K, 4).
+    seen, dist: (S, K) from geometry.object_visibility; boxes: (S, K, 4); p: the
+    detector's knobs (peak recall, range, smallest box, false positives, confidence and
+    appearance noise; perception.py).
     Returns det_box (S, C, 4) float32 pixels, det_conf (S, C) float32 (0 = none),
     appearance code (S, C, APPEARANCE_CODE_DIM) float32 (0 where nothing detected).
     """
     S, K = seen.shape
-    rng_range = DETECT_RANGE[obj_category][None]                            # (1, K)
-    recall = PEAK_RECALL / (1 + np.exp((dist - rng_range) / RANGE_SOFTNESS))
+    rng_range = DETECT_RANGE[obj_category][None] * p.detect_range_scale     # (1, K)
+    recall = p.peak_recall / (1 + np.exp((dist - rng_range) / RANGE_SOFTNESS))
     area = (boxes[..., 2] - boxes[..., 0]) * (boxes[..., 3] - boxes[..., 1])
-    hit = seen & (dist <= MAX_DETECT_DISTANCE) & (area >= 4.0) & (rng.random((S, K)) < recall)
-    conf = np.clip(0.55 + 0.4 * (1 - dist / rng_range) + rng.normal(0, 0.08, (S, K)), 0.05, 0.99)
+    hit = (seen & (dist <= MAX_DETECT_DISTANCE) & (area >= p.min_box_area)
+           & (rng.random((S, K)) < recall))
+    conf = np.clip(0.55 + 0.4 * (1 - dist / rng_range)
+                   + rng.normal(0, p.confidence_noise, (S, K)), 0.05, 0.99)
     conf = np.where(hit, conf, 0.0)
     instance_code = rng.normal(0, 1, (K, APPEARANCE_CODE_DIM))
     view_noise = rng.normal(0, 1, (S, K, APPEARANCE_CODE_DIM))
@@ -69,15 +73,15 @@ def detect(rng: np.random.Generator, seen: np.ndarray, dist: np.ndarray, boxes: 
         s = np.arange(S)
         det_conf[:, c] = conf[s, best]
         det_box[:, c] = boxes[s, best]
-        code[:, c] = 0.7 * instance_code[best] + 0.5 * view_noise[s, best]
+        code[:, c] = 0.7 * instance_code[best] + p.appearance_noise * view_noise[s, best]
 
     # False positives: a low-confidence box of a category that was not detected.
-    fp = (rng.random((S, NUM_CATEGORIES)) < FALSE_POSITIVE_RATE) & (det_conf == 0)
+    fp = (rng.random((S, NUM_CATEGORIES)) < p.false_positive_rate) & (det_conf == 0)
     n = int(fp.sum())
     centre = rng.uniform(20, IMAGE_SIZE - 20, (n, 2))
     half = rng.uniform(5, 30, (n, 2))
     det_box[fp] = np.clip(np.concatenate([centre - half, centre + half], 1), 0, IMAGE_SIZE)
-    det_conf[fp] = rng.uniform(0.05, 0.35, n)
+    det_conf[fp] = rng.uniform(0.05, p.fp_confidence_max, n)
     code[fp] = 1.5 * rng.normal(0, 1, (n, APPEARANCE_CODE_DIM))
     det_box[det_conf == 0] = 0.0
     code[det_conf == 0] = 0.0

@@ -6,6 +6,7 @@ import dataclasses
 
 from orgnav_jax.constants import FLOORPLAN_OFFSET, ROOM_TYPES, SPLITS
 from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
+from orgnav_jax.scenes.synthetic.perception import Perception
 
 
 # The widest feature channel count a preset may ask for: 8x the paper's 512 (ResNet-18).
@@ -26,7 +27,9 @@ class ScenePreset:
     num_rooms: only this many of the rooms, taken in turn from each room type and,
       within a type, from each split (see floorplans); None = all of them;
     anchor_probability: how often an object with anchors is placed by one (the
-      co-occurrence knob; catalog.ANCHOR_PROBABILITY by default)."""
+      co-occurrence knob; catalog.ANCHOR_PROBABILITY by default);
+    perception: the global view's and the detector's knobs (perception.py; the
+      defaults are the clean perception of `small`)."""
     name: str
     rooms_per_type: tuple[int, int, int] = (20, 5, 5)
     global_dim: int = 32
@@ -35,9 +38,13 @@ class ScenePreset:
     raw: bool = False
     num_rooms: int | None = None
     anchor_probability: float = ANCHOR_PROBABILITY
+    perception: Perception = Perception()
 
     def __post_init__(self):
         from orgnav_jax.scenes.synthetic.layout import ROOM_SIZE_PROFILES
+        if not isinstance(self.perception, Perception):
+            raise ValueError(f"preset {self.name!r}: perception must be a Perception, got "
+                             f"{type(self.perception).__name__}")
         if not 0.0 <= self.anchor_probability <= 1.0:
             raise ValueError(f"preset {self.name!r}: anchor_probability "
                              f"{self.anchor_probability!r}, expected 0 <= p <= 1")
