@@ -227,6 +227,10 @@ def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
     if rollout_len:
         over["rollout_len"] = rollout_len
     cfg = row_config(preset, trained, **over)
+    skip = memory_skip(cfg, scenes, seeds)
+    if skip:
+        return {"preset": preset, "model": model_name, "num_envs": num_envs,
+                "devices": devices, "seeds": seeds, "dtype": dtype, **skip}
     model = build_model(cfg, scenes)
     optimizer = make_optimizer(cfg)
     runners = [init_runner(cfg, model, optimizer, scenes, jax.random.PRNGKey(cfg.seed + i))
@@ -273,6 +277,24 @@ def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
             "_rollout_len": cfg.rollout_len, "_timed": timed}
 
 
+def memory_skip(cfg, scenes, seeds: int = 1, tpn_cfg=None) -> dict | None:
+    """{"skipped": why, "estimate_gb", "available_gb"} when the training preflight's
+    estimate of one chunk (training/memory.py; a TPN chunk with tpn_cfg) times the seeds
+    exceeds the machine's available memory, else None: such a row would end in XLA's
+    RESOURCE_EXHAUSTED after minutes of compiling, so it is not run."""
+    from orgnav_jax.training import memory
+    parts = (memory.chunk_memory_bytes(cfg, scenes) if tpn_cfg is None
+             else memory.tpn_memory_bytes(tpn_cfg, cfg, scenes))
+    need = sum(parts.values()) * seeds
+    have, where = memory.available_memory()
+    if have is None or need <= have:
+        return None
+    why = (f"skipped: the memory estimate {memory.human(need)} exceeds the "
+           f"{memory.human(have)} {where}")
+    return {"skipped": why, "estimate_gb": round(need / 2**30, 1),
+            "available_gb": round(have / 2**30, 1)}
+
+
 def retime(row: dict, repeats: int) -> None:
     """Time a row's compiled chunk again (after a SAVN row, on a shared machine) and keep
     the best of all its runs."""
@@ -302,6 +324,10 @@ def time_savn_row(preset: str, model_name: str, num_envs: int, scenes, updates: 
     if lstm_layers:
         over["lstm_layers"] = lstm_layers
     cfg = row_config(preset, trained, **over)
+    skip = memory_skip(cfg, scenes)
+    if skip:
+        return {"preset": preset, "model": f"{model_name}+savn" + ("-fo" if first_order else ""),
+                "num_envs": num_envs, **skip}
     chunk, runner = savn_chunk_and_runner(cfg, scenes, trained)
     t0 = time.perf_counter()
     traced = chunk.trace(runner, scenes)
@@ -491,6 +517,10 @@ def main() -> None:
                              args.rollout_len, args.repeats, d, seeds, dtype, trained,
                              args.lstm_layers)
                 rows.append(r)
+                if "skipped" in r:
+                    print(f"{preset:6} {model_name:9} {d:2d} {seeds:2d} {dtype:8} {n:4d} "
+                          f"{r['skipped']}", flush=True)
+                    continue
                 print(f"{preset:6} {model_name:9} {d:2d} {seeds:2d} {dtype:8} {n:4d} "
                       f"{r['_rollout_len']:3d} "
                       f"{r['_steps']:6d} {r['compile_s']:9.2f} {r['_run_s']:7.3f} "
@@ -507,6 +537,11 @@ def main() -> None:
                                  for u in args.savn_segments]
                     retime(r, args.repeats)      # the base model again: best of both
                     for sv in savn_rows:
+                        if "skipped" in sv:
+                            rows.append(sv)
+                            print(f"{preset:6} {sv['model']:15} N={n:<4d} {sv['skipped']}",
+                                  flush=True)
+                            continue
                         sv["ratio_to_base"] = round(sv["env_steps_per_s"] /
                                                     r["env_steps_per_s"], 3)
                         rows.append(sv)
@@ -543,7 +578,8 @@ def add_baseline_ratios(rows: list[dict], rounds: int = 0) -> list[dict]:
     machine's load, which changes over minutes, weighs on both alike."""
     def key(r):
         return r["preset"], r["num_envs"], r.get("devices"), r.get("seeds"), r.get("dtype")
-    plain = [r for r in rows if "devices" in r and "savn" not in r["model"]]
+    plain = [r for r in rows if "devices" in r and "savn" not in r["model"]
+             and "skipped" not in r]
     base = {key(r): r["env_steps_per_s"] for r in plain if r["model"] == "baseline"}
     out = []
     base_rows = {key(r): r for r in plain if r["model"] == "baseline"}

@@ -248,14 +248,21 @@ def _transition(state: EnvState, action: jax.Array, scenes: SceneSet, params: En
     cap = jnp.asarray(params.step_caps, jnp.int32)[scenes.room_type[state.scene]]
     truncated = (steps >= cap) & ~is_done & valid
     done = is_done | truncated
+    # an invalid action or a state of other scenes: nothing happens (module doc). The
+    # scalars are selected; the trail is written at an index past its end when the step
+    # is invalid, which the scatter drops (no select over the whole trail per step).
+    keep = lambda a, b: jnp.where(valid, a, b)
+    last = state.trail.shape[0]
     new = state.replace(
-        state=nxt, steps=steps, path_len=state.path_len + (~is_done).astype(jnp.int32),
-        prev_action=action, last_failed=failed,
-        revisited=jnp.where(is_done, state.revisited, jnp.any(state.trail == nxt)),
-        trail=state.trail.at[jnp.minimum(steps, state.trail.shape[0] - 1)].set(nxt),
+        state=keep(nxt, state.state), steps=keep(steps, state.steps),
+        path_len=keep(state.path_len + (~is_done).astype(jnp.int32), state.path_len),
+        prev_action=keep(action, state.prev_action),
+        last_failed=keep(failed, state.last_failed),
+        revisited=keep(jnp.where(is_done, state.revisited, jnp.any(state.trail == nxt)),
+                       state.revisited),
+        trail=state.trail.at[jnp.where(valid, jnp.minimum(steps, last - 1), last)].set(
+            nxt, mode="drop"),
     )
-    # an invalid action or a state of other scenes: nothing happens (module doc)
-    new = jax.tree_util.tree_map(lambda a, b: jnp.where(valid, a, b), new, state)
     reward = jnp.where(success, params.success_reward, params.step_penalty).astype(jnp.float32)
     reward = jnp.where(valid, reward, jnp.float32(0))
     info = {"success": success, "failed": failed, "path_len": new.path_len,
