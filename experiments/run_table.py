@@ -12,8 +12,8 @@ definition; it is copied to OUT/spec.json, which claims.py reads. Without --spec
     python experiments/run_table.py --rows baseline baseline+tpn org_il org_il+tpn \\
         org_il+tpn_all org_il+tpn_random --out experiments/results/table2
 
-(The first made docs/results_1m.md's 1 M table before network parity; that table is kept
-in experiments/results/before_parity/tables.)
+(The first made the 1 M table of docs/history/results-1m.md before network parity; that
+table is kept in experiments/results/before_parity/tables.)
 
 Each (row, seed) trains in OUT/runs/<row>-s<seed> (skipped when its test results exist,
 resumed when it has checkpoints: rerun the same command after an interruption), is
@@ -27,8 +27,9 @@ invocations stay. Extra `--FIELD VALUE` options apply to every row.
 The row `random` evaluates the uniform random policy on the same test episodes (seed S
 samples its actions) in OUT/runs/random-s<seed>. Every run directory also gets
 provenance.json: the code version (git commit, uncommitted changes), CPU, jax version and
-time of each session that trained or evaluated it; results JSONs keep every episode's
-outcome (per_episode), so claims.py can pair rows episode by episode.
+time of each process that trained or evaluated it (claims.py tables them in OUT/
+provenance.md); results JSONs keep every episode's outcome (per_episode), so claims.py
+can pair rows episode by episode.
 
 A row BASE+VARIANT (VARIANT in tpn, tpn_all, tpn_random, tpn_cosine, tpn_train_mode) uses the run of row BASE (trained
 first if needed), trains its TPN (stage 2) in OUT/runs/BASE-s<seed>/tpn once, and
@@ -128,7 +129,7 @@ def existing_results(out: Path, row: str, seed: int | str) -> Path | None:
 
 
 def read_provenance(path: Path) -> list:
-    """RUN_DIR/provenance.json: a list of session records ([] when absent); ValueError
+    """RUN_DIR/provenance.json: a list of per-process records ([] when absent); ValueError
     naming the file otherwise."""
     if not path.exists():
         return []
@@ -178,7 +179,7 @@ _STARTED: dict = {}      # provenance() when this process started: the code it r
 
 
 def record_provenance(run_dir: Path, what: str) -> None:
-    """Append this session and what it did to RUN_DIR/provenance.json (after the work: a
+    """Append this process and what it did to RUN_DIR/provenance.json (after the work: a
     fresh run directory must be empty when training starts): the code version and
     machine of the process as it started ("code", "uncommitted_changes": what ran),
     and the time of the record."""
@@ -426,8 +427,8 @@ def write_table(out: Path, results: dict[str, dict[str, dict]]) -> str:
 
 
 def write_outputs(out: Path, results: dict, spec: dict | None) -> str:
-    """The table files: with a spec, results.json, table.md and claims.md recomputed from
-    the runs' files (claims.py); without, write_table. -> table.md's text."""
+    """The table files: with a spec, results.json, table.md, claims.md and provenance.md
+    recomputed from the runs' files (claims.py); without, write_table. -> table.md's text."""
     if spec is None:
         return write_table(out, results)
     from claims import write_all          # the sibling script (it imports this one)
@@ -498,7 +499,8 @@ def write_curves(out: Path, results: dict[str, dict[str, dict]]) -> Path | None:
 
 
 # the files run_table.py (re)writes in --out (claims.py too, with a spec)
-TABLE_FILES = ("spec.json", "results.json", "table.md", "claims.md", "curves.png")
+TABLE_FILES = ("spec.json", "results.json", "table.md", "claims.md", "provenance.md",
+               "curves.png")
 
 
 def check_out(out: Path, spec_path: str | None) -> None:

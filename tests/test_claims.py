@@ -133,6 +133,41 @@ def test_before_after_lists_claims_of_both_tables_and_changed_verdicts(claims, t
     assert not any("ORG + IL > ORG" in x for x in lines)    # measured in neither
 
 
+def test_provenance_table_is_generated_from_the_runs_records(claims, table_dir, capsys):
+    """provenance.md: a line per run group and distinct record (code, uncommitted
+    changes, device, CPU, jax), its seeds as ranges, what the processes did; runs without
+    records say so. --check compares it where it exists and skips it where a table has
+    none (tables made before it)."""
+    record = {"code": "a" * 40, "uncommitted_changes": False, "cpu": "Test CPU",
+              "device": "cpu cpu", "jax": "0.10.2", "python": "3.11.7",
+              "time": "2026-12-04T10:00:00+00:00", "started": "2026-12-04T09:00:00+00:00"}
+    for seed in range(3):
+        (table_dir / "runs" / f"baseline-s{seed}" / "provenance.json").write_text(json.dumps(
+            [dict(record, did="trained in one program with seeds 0 1 2"),
+             dict(record, did="resumed and finished, tested")]))
+    (table_dir / "runs" / "il-s2" / "provenance.json").write_text(json.dumps(
+        [dict(record, code="b" * 40, device="gpu NVIDIA H200", did="trained, tested")]))
+    assert claims.main(["--check", str(table_dir)]) == 1      # claims.md etc. not written
+    assert claims.main([str(table_dir)]) == 0
+    text = (table_dir / "provenance.md").read_text()
+    lines = text.splitlines()
+    assert ("| baseline | 0-2 | trained in one program with seeds 0 1 2; resumed and "
+            "finished; tested | aaaaaaa | no | cpu cpu | Test CPU | 0.10.2 | 2026-12-04 |"
+            in lines), text
+    assert "| il | 2 | trained; tested | bbbbbbb | no | gpu NVIDIA H200 |" in text
+    assert "| il | 0-1 | no provenance.json | - | - |" in text
+    assert claims.seed_ranges(["0", "1", "2", "4", "6", "7"]) == "0-2, 4, 6-7"
+    capsys.readouterr()
+    assert claims.main(["--check", str(table_dir)]) == 0
+    assert "provenance.md agree" in capsys.readouterr().out
+    (table_dir / "runs" / "il-s2" / "provenance.json").write_text(json.dumps(
+        [dict(record, did="trained, tested")]))
+    assert claims.main(["--check", str(table_dir)]) == 1
+    assert "provenance.md: differs" in capsys.readouterr().err
+    (table_dir / "provenance.md").unlink()                   # optional: a table without it
+    assert claims.main(["--check", str(table_dir)]) == 0
+
+
 def test_per_category_groups_and_table(claims, table_dir):
     groups = claims.category_groups()
     assert "Toaster" in groups["anchored"] and "Laptop" in groups["anchored"]
