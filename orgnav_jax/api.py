@@ -57,16 +57,20 @@ def load_policy(policy: str | None = None, run_dir: str | None = None,
     (run_dir), a stage-2 run (tpn_dir: its base with TPN's test-time updates;
     test_time overrides tpn.config.TEST_TIME_FIELDS), or a checkpoint of the authors'
     release (release_checkpoint, of release_kind: models/release.py; greedy, on the
-    scenes the caller names, whose feature widths must be the checkpoint's). savn_act
+    scenes the caller names, whose feature widths must be the checkpoint's; a
+    MetaMemoryGraphModel with the test-time updates of its TPN head, test_time
+    overriding the release's settings, tpn_lr 0 for none). savn_act
     ("greedy" | "sample") overrides a SAVN run's test-time actions."""
     from orgnav_jax import evaluation
     if sum(x is not None for x in (policy, run_dir, tpn_dir, release_checkpoint)) > 1:
         raise UserError("give one of a policy name, a run directory, a TPN run directory or "
                         "a release checkpoint")
-    if test_time and tpn_dir is None:
+    release_tpn = release_checkpoint is not None and release_kind == "MetaMemoryGraphModel"
+    if test_time and tpn_dir is None and not release_tpn:
         from orgnav_jax.tpn.config import TEST_TIME_FIELDS
         options = ", ".join("--" + f.replace("_", "-") for f in TEST_TIME_FIELDS)
-        raise UserError(f"test-time TPN options ({options}) need --tpn TPN_RUN_DIR")
+        raise UserError(f"test-time TPN options ({options}) need --tpn TPN_RUN_DIR or "
+                        "--release-kind MetaMemoryGraphModel")
     if savn_act is not None and run_dir is None:
         raise UserError("--savn-act needs --checkpoint RUN_DIR of a SAVN or D-SAVN run")
     if tpn_dir is not None:
@@ -84,9 +88,23 @@ def load_policy(policy: str | None = None, run_dir: str | None = None,
         from orgnav_jax.constants import IMAGE_SIZE
         from orgnav_jax.models import release
         from orgnav_jax.training.runs import model_policy
+        if release_tpn:            # the test-time settings, checked before the file is read
+            from orgnav_jax.tpn.config import get_tpn_config
+            settings = get_tpn_config(**test_time).test_time()
         net = release.load(release_kind, release.read_checkpoint(release_checkpoint))
-        name = f"{Path(release_checkpoint).stem}-{release_kind}"
-        return LoadedPolicy(model_policy(net.model, name, float(IMAGE_SIZE)), net.params, name)
+        stem = Path(release_checkpoint).stem
+        if not release_tpn:
+            name = f"{stem}-{release_kind}"
+            return LoadedPolicy(model_policy(net.model, name, float(IMAGE_SIZE)), net.params,
+                                name)
+        # MetaMemoryGraphModel: its navigation network with the test-time updates of its
+        # own TPN head (the release's procedure: tpn/test_time.py; tpn_lr 0: none)
+        from orgnav_jax.tpn.test_time import default_batch_size, tpn_name, tpn_policy
+        pol = tpn_policy(net.model, net.tpn, settings, tpn_name(release_kind, settings),
+                         release.RELEASE_DROPOUT, box_scale=float(IMAGE_SIZE))
+        params = {"base": net.params, "tpn": net.tpn_params}
+        return LoadedPolicy(pol, params, f"{stem}-{pol.name}",
+                            batch_size=default_batch_size(net.params, settings))
     policies = {"random": evaluation.random_policy, "expert": evaluation.expert_policy}
     name = policy or "random"
     if name not in policies:

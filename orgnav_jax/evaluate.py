@@ -64,7 +64,9 @@ def parser() -> argparse.ArgumentParser:
                           "with its feature widths (e.g. imported offline data)")
     ap.add_argument("--release-kind", default="GraphModel",
                     choices=("BaseModel", "GraphModel", "MetaMemoryGraphModel"),
-                    help="the release's model class of --release-checkpoint")
+                    help="the release's model class of --release-checkpoint; "
+                         "MetaMemoryGraphModel evaluates with the test-time updates of its "
+                         "TPN head (the TPN options below apply; --tpn-lr 0: none)")
     ap.add_argument("--split", choices=("val", "test"), default="test")
     ap.add_argument("--scene-preset", "--preset", dest="preset", default="small",
                     help="scene preset (built once, cached); --preset is the old name")

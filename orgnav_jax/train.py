@@ -388,6 +388,14 @@ def main_pretrain_pipeline(args) -> dict:
     fields = overrides_from_args(args)
     run_dir = fields.get("run_dir", get_config(args.preset).run_dir)
     first = seed_run_dir(run_dir, args.seeds[0]) if args.seeds else run_dir
+    pre_dir = f"{str(run_dir).rstrip('/')}-pretrain"
+    pre_first = seed_run_dir(pre_dir, args.seeds[0]) if args.seeds else pre_dir
+    if args.resume and not is_run_dir(first) and not is_run_dir(pre_first):
+        # nothing of the pipeline exists (a mistyped --run-dir): refused as every preset's
+        # --resume is, rather than starting hours of pre-training and training anew
+        raise FileNotFoundError(f"--resume: {first} holds no run, nor {pre_first} a "
+                                "pre-training (config.json is missing or not a run "
+                                "config): nothing to resume; drop --resume to start one")
     if args.resume and is_run_dir(first):      # pre-training done: training resumes
         cfg = nav_config(args)
         if cfg.pretrained is None:     # options beside --run-dir: the preset's config

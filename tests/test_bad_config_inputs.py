@@ -524,3 +524,18 @@ def test_a_malformed_tpn_config_json_names_file_and_field(tmp_path, field, value
     with pytest.raises(ValueError) as err:
         load_tpn_config(path.parent)
     assert str(err.value).startswith(f"{path}: ") and message in str(err.value)
+
+
+def test_vtnet_resume_of_a_missing_run_dir_is_refused(tmp_path, tiny_dir, cli_error):
+    """Issue 55: `--preset vtnet --resume --run-dir MISSING` (a typo) started a fresh
+    pre-training and training, where every other preset refuses "holds no run"; with
+    seeds too. A pipeline whose pre-training exists still resumes (not tested here:
+    it trains)."""
+    missing = tmp_path / "vtnte"
+    for extra in ([], ["--seeds", "0", "1"]):
+        line = cli_error(train_cli.main, ["--preset", "vtnet", "--resume", "--run-dir", missing,
+                                          "--scenes-dir", tiny_dir, "--quiet", *extra])
+        first, pre = ((f"{missing}-s0", f"{missing}-pretrain-s0") if extra
+                      else (missing, f"{missing}-pretrain"))
+        assert f"--resume: {first} holds no run, nor {pre} a pre-training" in line, line
+    assert sorted(tmp_path.iterdir()) == []

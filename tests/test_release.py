@@ -303,3 +303,132 @@ def test_meta_memory_graph_model_loads_its_tpn_head():
     with pytest.raises(release.ReleaseError, match=r"'meta_memory_embedding.3.weight' has "
                                                    r"shape \(23, 32\), expected \(22, 32\)"):
         release.load("MetaMemoryGraphModel", sd)
+
+
+# ---- issue 55 (bad input, round four): damaged files and widths the model cannot take --
+
+def test_a_damaged_or_misplaced_checkpoint_file_is_one_line_naming_it(tmp_path):
+    """A zero-byte or truncated .npz (an interrupted download), a single .npy named .npz
+    and a directory: one ReleaseError line naming the file (EOFError, BadZipFile and
+    "no such file" before)."""
+    whole = tmp_path / "whole.npz"
+    np.savez(whole, **state_dict("GraphModel"))
+    data = whole.read_bytes()
+    (tmp_path / "empty.npz").write_bytes(b"")
+    (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])
+    (tmp_path / "head.npz").write_bytes(data[:100])
+    with open(tmp_path / "one.npz", "wb") as f:
+        np.save(f, np.zeros(3, np.float32))
+    (tmp_path / "dir.npz").mkdir()
+    for name, words in (("empty.npz", "empty file (0 bytes; an interrupted download?)"),
+                        ("cut.npz", "not a readable .npz"),
+                        ("head.npz", "not a readable .npz"),
+                        ("one.npz", "a single .npy array"),
+                        ("dir.npz", "a directory, expected a release checkpoint")):
+        with pytest.raises(release.ReleaseError) as err:
+            release.read_checkpoint(tmp_path / name)
+        assert str(tmp_path / name) in str(err.value) and words in str(err.value), name
+        assert "\n" not in str(err.value)
+    assert set(release.read_checkpoint(whole)) == set(state_dict("GraphModel"))
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf, 1e39])
+def test_non_finite_weights_are_refused_naming_the_entry(value):
+    """nan / inf (or a float64 beyond float32) evaluated to a constant action at 0%."""
+    sd = state_dict("GraphModel")
+    sd["lstm.weight_hh_l1"] = sd["lstm.weight_hh_l1"].astype(np.float64)
+    sd["lstm.weight_hh_l1"][3, 2] = value
+    with pytest.raises(release.ReleaseError, match=r"'lstm.weight_hh_l1' holds 1 non-finite "
+                                                   r"value\(s\)") as err:
+        release.load("GraphModel", sd)
+    assert "\n" not in str(err.value)
+
+
+def test_widths_the_model_cannot_take_are_one_line_at_load():
+    """20 categories (ended in flax's ScopeParamShapeError at the first step) and a critic
+    width other than the release's 64 (the same); every mapped shape is compared with the
+    model's own (a mismatch there names the state-dict entry)."""
+    global C
+    try:
+        C = 20
+        sd = state_dict("GraphModel")
+    finally:
+        C = 22
+    with pytest.raises(release.ReleaseError, match=r"'pointwise.weight' reads 38 channels = "
+                                                   r"conv1's 8 \+ 20 category maps .*expected "
+                                                   r"22 categories"):
+        release.load("GraphModel", sd)
+    sd = state_dict("BaseModel")
+    sd["critic_linear_1.weight"] = np.ones((32, H), np.float32)
+    sd["critic_linear_1.bias"] = np.ones(32, np.float32)
+    sd["critic_linear_2.weight"] = np.ones((1, 32), np.float32)
+    with pytest.raises(release.ReleaseError, match=r"'critic_linear_1.weight' has shape "
+                                                   r"\(32, 16\), expected \(64, 16\)"):
+        release.load("BaseModel", sd)
+    net = release.load("GraphModel", state_dict("GraphModel"))
+    tree = jax.tree_util.tree_map(np.asarray, net.params["params"])
+    tree["encoder"]["relation_3"]["kernel"] = np.zeros((C, C + 1), np.float32)
+    with pytest.raises(release.ReleaseError, match=r"'graph_detection_other_info_linear_3' "
+                                                   r"gives encoder/relation_3/kernel the shape "
+                                                   r"\(22, 23\), expected \(22, 22\)"):
+        release._check_model_shapes("GraphModel", net.model, tree, G, D)
+
+
+def meta_memory_state_dict(seed: int = 5) -> dict:
+    """A GraphModel state dict with the MetaMemoryGraphModel's TPN head (random)."""
+    sd = state_dict("GraphModel")
+    rng = np.random.default_rng(seed)
+    Hm = 2 * H + 6
+    head = {"meta_current_state_embedding.0": (H // 2, H), "meta_current_state_embedding.1": (H // 2,),
+            "meta_current_state_embedding.3": (H, H // 2), "meta_current_state_embedding.4": (H,),
+            "meta_current_action_embedding": (6, 6),
+            "meta_memory_embedding.0": (2 * H, H + 6), "meta_memory_embedding.1": (2 * H,),
+            "meta_memory_embedding.3": (H + 6, 2 * H), "meta_memory_embedding.4": (H + 6,),
+            "meta_learning_residual_block.0": (H, Hm), "meta_learning_residual_block.1": (H,),
+            "meta_learning_residual_block.3": (Hm, H), "meta_learning_residual_block.4": (Hm,),
+            "meta_learning_predict.0": (H, Hm), "meta_learning_predict.2": (6, H)}
+    for name, shape in head.items():
+        sd[f"{name}.weight"] = rng.standard_normal(shape).astype(np.float32)
+        sd[f"{name}.bias"] = rng.standard_normal(shape[:1]).astype(np.float32)
+    return sd
+
+
+def test_meta_memory_graph_model_evaluates_with_its_tpn_head(tmp_path, tiny_scenes, cli_error):
+    """--release-kind MetaMemoryGraphModel evaluated the navigation network and dropped the
+    TPN head it loaded, under the MetaMemory label: now its policy is the test-time TPN
+    policy on the loaded head (the release's settings; the test-time options apply), and
+    with --tpn-lr 0 its episodes are the GraphModel's own. Test-time options with another
+    kind are refused."""
+    from orgnav_jax import api, evaluate
+    global G, D
+    widths = (G, D)
+    try:
+        G, D = tiny_scenes.global_dim, tiny_scenes.appearance_dim
+        sd = meta_memory_state_dict()
+        np.savez(tmp_path / "mm.npz", **sd)
+        np.savez(tmp_path / "graph.npz", **{k: v for k, v in sd.items()
+                                            if not k.startswith("meta_")})
+    finally:
+        G, D = widths
+    loaded = api.load_policy(release_checkpoint=str(tmp_path / "mm.npz"),
+                             release_kind="MetaMemoryGraphModel")
+    assert loaded.policy.name == "MetaMemoryGraphModel+TPN" and loaded.name == \
+        "mm-MetaMemoryGraphModel+TPN"
+    np.testing.assert_array_equal(loaded.params["tpn"]["params"]["predict_2"]["kernel"],
+                                  sd["meta_learning_predict.2.weight"].T)
+    common = ["--scene-preset", "tiny", "--split", "val", "--episodes-per-room-type", "1",
+              "--quiet"]
+    mm = evaluate.main(["--release-checkpoint", str(tmp_path / "mm.npz"), "--release-kind",
+                        "MetaMemoryGraphModel", "--tpn-lr", "0", "--out",
+                        str(tmp_path / "mm.json"), *common])
+    graph = evaluate.main(["--release-checkpoint", str(tmp_path / "graph.npz"), "--out",
+                           str(tmp_path / "graph.json"), *common])
+    assert mm["policy"] == "mm-MetaMemoryGraphModel+TPN"
+    assert mm["per_episode"] == graph["per_episode"]
+    line = cli_error(evaluate.main, ["--release-checkpoint", tmp_path / "graph.npz",
+                                     "--tpn-lr", "1e-3", "--out", tmp_path / "x.json", *common])
+    assert "need --tpn TPN_RUN_DIR or --release-kind MetaMemoryGraphModel" in line
+    line = cli_error(evaluate.main, ["--release-checkpoint", tmp_path / "mm.npz",
+                                     "--release-kind", "MetaMemoryGraphModel", "--tpn-lr", "-1",
+                                     "--out", tmp_path / "x.json", *common])
+    assert "'tpn_lr': -1.0" in line and not (tmp_path / "x.json").exists()

@@ -205,3 +205,105 @@ def test_evaluate_savn_act_overrides_a_savn_runs_test_time_actions(monkeypatch, 
     assert run_cli(main, ["--policy", "random", "--savn-act", "sample", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--savn-act needs --checkpoint" in err[0]
+
+
+# ---- issue 55 (bad input, round four): word vectors ------------------------------------
+
+def test_a_word2vec_header_is_skipped_and_a_word_given_twice_is_refused(tmp_path):
+    """word2vec's "N D" first line was "a line with the wrong count of numbers": it is
+    skipped when the vectors have D numbers, and named as a header when they do not; a
+    word the categories need given twice with other numbers is refused (twice the same
+    is accepted)."""
+    plain = tmp_path / "plain.txt"
+    glove_file(plain)
+    lines = plain.read_text().splitlines()
+    (tmp_path / "w2v.txt").write_text("\n".join([f"{len(lines)} {D}", *lines]) + "\n")
+    np.testing.assert_array_equal(category_vectors(tmp_path / "w2v.txt"),
+                                  category_vectors(plain))
+    book = next(line for line in lines if line.startswith("book "))
+    cases = {
+        "header.txt": (f"{len(lines)} 300\n" + "\n".join(lines),
+                       f"line 1: '{len(lines)} 300' looks like a word2vec header ('N D'), "
+                       f"but line 2 has {D} numbers, not 300"),
+        "only.txt": ("400000 300", "only a header line '400000 300'"),
+        "twice.txt": ("\n".join([*lines, "book 9 9 9 9 9"]),
+                      f"line {len(lines) + 1}: 'book' is given again (first on line "),
+        "cut.txt": ("\n".join([lines[0], "book 1 2"]), "line 2: 2 numbers, expected 5 "
+                                                       "(line 1's, the first vector's)"),
+    }
+    for name, (text, message) in cases.items():
+        (tmp_path / name).write_text(text + "\n")
+        with pytest.raises(ValueError) as err:
+            category_vectors(tmp_path / name)
+        assert message in str(err.value) and "\n" not in str(err.value), (name, err.value)
+    (tmp_path / "same.txt").write_text("\n".join([*lines, book]) + "\n")
+    np.testing.assert_array_equal(category_vectors(tmp_path / "same.txt"),
+                                  category_vectors(plain))
+
+
+def test_word_vectors_go_only_with_a_model_that_reads_them(tmp_path, tiny_dir, cli_error):
+    """--word-vectors with a model that reads none was kept in the config and silently
+    ignored (--pretrained and --tpn-lr are refused there): refused the same way, before
+    anything is written; so are an empty path and a malformed sha256."""
+    from orgnav_jax.train import main
+    path = tmp_path / "glove.txt"
+    glove_file(path)
+    for preset, extra, message in (
+            ("baseline", {}, "model 'baseline' reads no word vectors"),
+            ("dsavn", {}, "model 'baseline' reads no word vectors"),
+            ("org", {}, "model 'org' reads no word vectors"),
+            ("we", {"target_input": "onehot_maps"}, "target_input 'onehot_maps' reads no"),
+            ("we", {"word_vectors": " "}, "an empty path")):
+        with pytest.raises(ValueError, match="config field 'word_vectors'") as err:
+            get_config(preset, **{"word_vectors": str(path), **extra})
+        assert message in str(err.value), preset
+    for digest in ("abc", "F" * 64):
+        with pytest.raises(ValueError, match="'word_vectors_sha256'.*64 lower-case hex"):
+            get_config("we", word_vectors=str(path), word_vectors_sha256=digest)
+    with pytest.raises(ValueError, match="'word_vectors_sha256'"):
+        get_config("we", word_vectors_sha256="0" * 64)
+    assert get_config("savn", word_vectors=str(path)).word_vectors == str(path)
+    run = tmp_path / "run"
+    line = cli_error(main, ["--preset", "dsavn", "--scenes-dir", tiny_dir, "--run-dir", run,
+                            "--word-vectors", path, "--quiet"])
+    assert "config field 'word_vectors'" in line and "reads no word vectors" in line
+    assert not run.exists()
+
+
+def test_a_run_keeps_the_sha256_of_its_word_vectors_and_refuses_others(tmp_path, tiny_dir,
+                                                                        cli_error):
+    """A run kept only the file's path: a changed or replaced file gave other vectors
+    (other episodes) without a word. A fresh run records the sha256 of the (22, D)
+    vectors it reads in its config; evaluation and resume refuse a file whose vectors
+    are others (before any checkpoint is read or anything written); the same vectors in
+    another layout are accepted."""
+    from orgnav_jax import evaluate, train
+    from orgnav_jax.models.word_vectors import category_table
+    from orgnav_jax.training.runs import keep_word_vectors, load_run_model
+    path = tmp_path / "glove.txt"
+    glove_file(path)
+    run = tmp_path / "run"
+    run.mkdir()
+    fresh = get_config("we", word_vectors=str(path), scenes_dir=tiny_dir, run_dir=str(run),
+                       **WIDTHS)
+    assert fresh.word_vectors_sha256 is None
+    kept = keep_word_vectors(fresh)
+    assert kept.word_vectors_sha256 == category_table(str(path)).sha256
+    (run / "config.json").write_text(kept.to_json())     # what the run's config holds
+    assert load_config(run).word_vectors_sha256 == kept.word_vectors_sha256
+    # the same vectors, reordered lines and other spacing: the same sha256
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(["  ".join(line.split()) for line in reversed(lines)]) + "\n")
+    assert keep_word_vectors(fresh, resume=True) == kept
+    path.write_text("\n".join("book 1 2 3 4 5" if line.startswith("book ") else line
+                              for line in lines) + "\n")     # 'book' is now another vector
+    before = sorted(p.name for p in run.iterdir())
+    message = f"word vectors {path}: not the vectors of the run {run}"
+    with pytest.raises(ValueError, match="not the vectors of the run") as err:
+        load_run_model(run)                  # before any checkpoint (there is none)
+    assert message in str(err.value)
+    with pytest.raises(ValueError, match="not the vectors of the run"):
+        keep_word_vectors(fresh, resume=True)           # the options given again
+    assert message in cli_error(evaluate.main, ["--checkpoint", run, "--quiet"])
+    assert message in cli_error(train.main, ["--run-dir", run, "--resume", "--quiet"])
+    assert sorted(p.name for p in run.iterdir()) == before

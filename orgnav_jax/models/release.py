@@ -18,6 +18,14 @@ forward in eval mode (no dropout). `tools/parity/` of the project's shared folde
 it against the release's own classes. The core needs numpy only; torch only to read a
 `.dat` file.
 
+What `load` refuses (ReleaseError, one line naming the entry): a missing, extra or
+misshapen entry; a non-finite weight (nan, inf, or a float64 beyond float32: a damaged
+file would otherwise evaluate to a constant action); widths the model cannot be built
+with (categories other than the 22 every scene set has, a critic width other than the
+release's 64): every inferred width is checked against the parameter shapes of the
+model it builds, before anything runs. `read_checkpoint` refuses a directory, an empty
+or truncated file (an interrupted download), naming the file.
+
 Mapping: a torch Linear weight (out, in) is a Dense kernel (in, out); a 1x1 Conv weight
 (out, in, 1, 1) likewise; the LSTM's gates (i, f, g, o) are in the same order, its two
 biases are summed, and the first layer's input rows are permuted from torch's
@@ -28,6 +36,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import zipfile
+import zlib
 from functools import partial
 from typing import Any
 
@@ -35,9 +45,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS
+from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS, NUM_CATEGORIES
 from orgnav_jax.models.encoders import BaselineEncoder
-from orgnav_jax.models.navmodel import ModelInputs, NavCarry, NavModel
+from orgnav_jax.models.navmodel import ModelInputs, NavCarry, NavModel, dummy_inputs
 from orgnav_jax.models.org import ReleasedORGEncoder
 from orgnav_jax.models.tpn_net import TPN
 from orgnav_jax.models.trunk import Trunk
@@ -45,6 +55,8 @@ from orgnav_jax.models.trunk import Trunk
 KINDS = ("BaseModel", "GraphModel", "MetaMemoryGraphModel")
 ORG_LAYERS = 5            # graph_detection_other_info_linear_1 .. _5
 CELLS = FEATURE_GRID * FEATURE_GRID
+CRITIC_HIDDEN = 64        # critic_linear_1's width: the release's, and Trunk.critic_hidden's
+RELEASE_DROPOUT = 0.25    # the release's dropout_rate (its "+TPN" runs in train mode)
 # MetaMemoryGraphModel's TPN head: torch module -> our TPN's (models/tpn_net.py)
 RELEASE_TPN = {
     "meta_current_state_embedding.0": "rep_1", "meta_current_state_embedding.1": "rep_norm_1",
@@ -188,6 +200,7 @@ def load(kind: str, state_dict: dict) -> ReleaseNet:
     if extra:
         raise ReleaseError(f"state dict: unexpected parameter {extra[0]!r} for a {kind}"
                            + (f" (and {len(extra) - 1} more)" if len(extra) > 1 else ""))
+    _check_finite(sd)
     conv1 = _conv1x1(sd, "conv1")
     G, glob = conv1["kernel"].shape
     action = _dense(sd, "embed_action", n_in=NUM_ACTIONS)
@@ -198,8 +211,13 @@ def load(kind: str, state_dict: dict) -> ReleaseNet:
         raise ReleaseError(f"state dict: 'pointwise.weight' has {in_ch} input channels, "
                            f"expected conv1's {glob} + categories + embed_action's "
                            f"{action['kernel'].shape[1]}")
+    if C != NUM_CATEGORIES:
+        raise ReleaseError(f"state dict: 'pointwise.weight' reads {in_ch} channels = conv1's "
+                           f"{glob} + {C} category maps + embed_action's "
+                           f"{action['kernel'].shape[1]}: expected {NUM_CATEGORIES} "
+                           "categories (the release's, and every scene set's)")
     H = _get(sd, "lstm.weight_hh_l0", 2).shape[1]
-    critic_1 = _dense(sd, "critic_linear_1", n_in=H)
+    critic_1 = _dense(sd, "critic_linear_1", n_in=H, n_out=CRITIC_HIDDEN)
     trunk_params = {
         "global_1x1": conv1, "action_dense": action, "fuse_1x1": pointwise,
         **_lstm(sd, layers, CELLS * fuse, H, fuse),
@@ -226,13 +244,65 @@ def load(kind: str, state_dict: dict) -> ReleaseNet:
     trunk = Trunk(glob_channels=glob, action_embed=action["kernel"].shape[1],
                   fuse_channels=fuse, hidden=H, lstm_layers=layers, form="release")
     model = NavModel(encoder, trunk, prev_action="probs")
-    params = jax.tree_util.tree_map(jnp.asarray,
-                                    {"params": {"encoder": enc_params, "trunk": trunk_params}})
+    tree = {"encoder": enc_params, "trunk": trunk_params}
+    _check_model_shapes(kind, model, tree, G, d)
+    params = jax.tree_util.tree_map(jnp.asarray, {"params": tree})
     net = ReleaseNet(kind, model, params)
     if kind == "MetaMemoryGraphModel":
         tpn, tpn_params = _tpn(sd, H)
         net = dataclasses.replace(net, tpn=tpn, tpn_params=tpn_params)
     return net
+
+
+def _check_finite(sd: dict) -> None:
+    """Every float entry finite as float32: ReleaseError naming the first that is not."""
+    for name in sorted(sd):
+        x = np.asarray(sd[name])
+        if not np.issubdtype(x.dtype, np.floating):
+            continue                             # _get names a non-float entry it reads
+        with np.errstate(over="ignore"):
+            bad = int(np.size(x) - np.isfinite(x.astype(np.float32)).sum())
+        if bad:
+            raise ReleaseError(f"state dict: {name!r} holds {bad} non-finite value(s) (nan, "
+                               "inf or beyond float32): expected finite weights (a damaged "
+                               "or diverged checkpoint?)")
+
+
+def _torch_name(kind: str, path: tuple[str, ...]) -> str:
+    """The state-dict entry one of our parameters comes from (for messages)."""
+    part, module = path[0], path[1]
+    if part == "trunk":
+        if module.startswith("lstm_"):
+            return f"lstm.*_l{module[5:]}"
+        return {"global_1x1": "conv1", "action_dense": "embed_action", "fuse_1x1": "pointwise",
+                "actor": "actor_linear", "critic_hidden": "critic_linear_1",
+                "critic": "critic_linear_2"}.get(module, module)
+    if module.startswith("relation_"):
+        return f"graph_detection_other_info_linear_{module[9:]}"
+    return {"hidden": "graph_detection_feature.0",
+            "to_map": "detection_feature" if kind == "BaseModel"
+            else "graph_detection_feature.2"}.get(module, module)
+
+
+def _check_model_shapes(kind: str, model: NavModel, tree: dict, G: int, d: int) -> None:
+    """The parameters mapped from the state dict against those the model builds for 22
+    categories and the inferred scene feature widths G, d (shapes only, no compute):
+    every width `load` inferred must be one the model can take. ReleaseError naming the
+    entry."""
+    like = jax.eval_shape(lambda: model.init(
+        {"params": jax.random.PRNGKey(0)}, dummy_inputs(NUM_CATEGORIES, G, d),
+        model.initial_carry(1)))["params"]
+    ours = {tuple(k.key for k in p): np.shape(x)
+            for p, x in jax.tree_util.tree_leaves_with_path(tree)}
+    want = {tuple(k.key for k in p): tuple(x.shape)
+            for p, x in jax.tree_util.tree_leaves_with_path(like)}
+    for path in sorted(set(ours) | set(want)):
+        if ours.get(path) != want.get(path):
+            raise ReleaseError(
+                f"state dict: {_torch_name(kind, path)!r} gives {'/'.join(path)} the shape "
+                f"{ours.get(path, 'absent')}, expected {want.get(path, 'no such parameter')} "
+                f"for a {kind} of these widths (global map {G}, appearance {d}, "
+                f"{NUM_CATEGORIES} categories)")
 
 
 def _tpn(sd: dict, hidden: int):
@@ -261,15 +331,26 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, np.ndarray]:
     `torch.save(model.state_dict(), path)` (needs torch: pip install
     'orgnav_jax[release]'), or a `.npz` of the same names (numpy only)."""
     path = os.fspath(path)
+    want = "expected a release checkpoint: a torch state dict, .dat, or an .npz of one"
+    if os.path.isdir(path):
+        raise ReleaseError(f"{path}: a directory, {want} (a file)")
     if not os.path.isfile(path):
-        raise ReleaseError(f"{path}: no such file (expected a release checkpoint: a torch "
-                           "state dict, .dat, or an .npz of one)")
+        raise ReleaseError(f"{path}: no such file ({want})")
+    if os.path.getsize(path) == 0:
+        raise ReleaseError(f"{path}: an empty file (0 bytes; an interrupted download?), "
+                           f"{want}")
     if path.endswith(".npz"):
         try:
-            with np.load(path, allow_pickle=False) as z:
+            z = np.load(path, allow_pickle=False)
+            if not isinstance(z, np.lib.npyio.NpzFile):
+                raise ValueError("a single .npy array, not an archive of named arrays")
+            with z:
                 return {k: z[k] for k in z.files}
-        except (OSError, ValueError) as e:
-            raise ReleaseError(f"{path}: not a readable .npz ({e})") from None
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile,
+                zlib.error) as e:
+            first = (str(e).splitlines() or [""])[0]
+            raise ReleaseError(f"{path}: not a readable .npz ({type(e).__name__}: {first}; "
+                               "a truncated file, an interrupted download?)") from None
     try:
         import torch
     except ImportError:

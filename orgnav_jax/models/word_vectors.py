@@ -8,12 +8,20 @@ from a GloVe text file the user gives (`--word-vectors FILE`):
 
     word v1 v2 ... vD          one word per line, D numbers, D the same on every line
 
-A category's vector is the file's vector of its name as written ("CoffeeMachine") or in
-lower case ("coffeemachine"); failing both, the mean of the vectors of its camel-case
-words in lower case ("coffee", "machine"), as the usual GloVe vocabularies hold lower-case
-single words. A malformed line (a word without numbers, a number that is not one, another
-D than the first line's) is a one-line ValueError naming the file and the line; a word the
-file lacks is one naming the file, the word and the category.
+A first line of two integers "N D" followed by lines of D numbers is word2vec's text
+header and is skipped; one followed by lines of another count is refused as a header
+that does not fit. A category's vector is the file's vector of its name as written
+("CoffeeMachine") or in lower case ("coffeemachine"); failing both, the mean of the
+vectors of its camel-case words in lower case ("coffee", "machine"), as the usual GloVe
+vocabularies hold lower-case single words. A malformed line (a word without numbers, a
+number that is not one, another D than the first line's) is a one-line ValueError naming
+the file and the line; so is a word the categories need that the file gives twice with
+different vectors (which one was meant cannot be told; twice the same vector is
+accepted); a word the file lacks is one naming the file, the word and the category.
+
+A run trained with a file keeps the sha256 of its (22, D) table in its config
+(`word_vectors_sha256`, `WordTable.sha256`): evaluation and resume refuse a file whose
+vectors are not those (training/runs.py: keep_word_vectors, check_word_vectors).
 
 Without a file the stand-in is used (STAND_IN): a fixed random unit vector per category
 (300-d, numpy's default_rng(STAND_IN_SEED)). It holds no semantics: two categories are as
@@ -26,12 +34,15 @@ claiming a semantic prior it would not have. Rows trained with the stand-in are 
 
     table = category_table(path_or_None)     # WordTable: (22, D), hashable (a module field)
     table.array()                            # np.ndarray (22, D) float32
+    table.sha256                             # what a run keeps of the vectors it read
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
+import os
 import re
 from pathlib import Path
 
@@ -54,6 +65,12 @@ class WordTable:
 
     def array(self) -> np.ndarray:
         return np.frombuffer(self.data, np.float32).reshape(self.rows, self.dim)
+
+    @property
+    def sha256(self) -> str:
+        """sha256 of the table (its shape and float32 values): equal for equal vectors,
+        whatever the file's formatting or name."""
+        return hashlib.sha256(f"{self.rows}x{self.dim}:".encode() + self.data).hexdigest()
 
     @staticmethod
     def of(array: np.ndarray, source: str) -> "WordTable":
@@ -80,7 +97,7 @@ def read_vectors(path: str | Path, words) -> tuple[dict[str, np.ndarray], int]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"word vectors {path}: no such file")
-    found, dim = {}, None
+    found, where, dim, header = {}, {}, None, None
     with open(path, "rb") as f:
         for n, raw in enumerate(f, 1):
             try:
@@ -91,15 +108,25 @@ def read_vectors(path: str | Path, words) -> tuple[dict[str, np.ndarray], int]:
             if not parts:
                 raise ValueError(f"word vectors {path}, line {n}: empty line, expected "
                                  "'word v1 ... vD'")
+            if n == 1 and len(parts) == 2 and all(p.isdigit() for p in parts):
+                header = (int(parts[0]), int(parts[1]))  # word2vec's "N D", if line 2 fits
+                continue
             if dim is None:
-                dim = len(parts) - 1
+                dim, first = len(parts) - 1, n
                 if dim < 1:
                     raise ValueError(f"word vectors {path}, line {n}: a word without "
                                      "numbers, expected 'word v1 ... vD'")
+                if header is not None and dim != header[1] and dim != 1:
+                    raise ValueError(
+                        f"word vectors {path}, line 1: '{header[0]} {header[1]}' looks like "
+                        f"a word2vec header ('N D'), but line {n} has {dim} numbers, not "
+                        f"{header[1]}: expected 'word v1 ... vD' lines")
+                # a header whose D does not fit line 2's single number: line 1 was a word
+                # and one number (no category's word is a number: nothing to keep of it)
             if len(parts) - 1 != dim:
                 raise ValueError(f"word vectors {path}, line {n}: {len(parts) - 1} numbers, "
-                                 f"expected {dim} (the first line's)")
-            if parts[0] in words and parts[0] not in found:
+                                 f"expected {dim} (line {first}'s, the first vector's)")
+            if parts[0] in words:
                 try:
                     v = np.array([float(x) for x in parts[1:]], np.float64)
                 except ValueError:
@@ -108,7 +135,17 @@ def read_vectors(path: str | Path, words) -> tuple[dict[str, np.ndarray], int]:
                 if not np.isfinite(v).all() or np.abs(v).max() > 3.4e38:
                     raise ValueError(f"word vectors {path}, line {n}: {parts[0]!r} has a "
                                      "value that is not a finite float32")
-                found[parts[0]] = v
+                if parts[0] in found:
+                    if not np.array_equal(found[parts[0]], v):
+                        raise ValueError(
+                            f"word vectors {path}, line {n}: {parts[0]!r} is given again "
+                            f"(first on line {where[parts[0]]}) with another vector: "
+                            "expected one vector per word")
+                    continue
+                found[parts[0]], where[parts[0]] = v, n
+    if dim is None and header is not None:
+        raise ValueError(f"word vectors {path}: only a header line '{header[0]} "
+                         f"{header[1]}', expected lines 'word v1 ... vD'")
     if dim is None:
         raise ValueError(f"word vectors {path}: empty file, expected lines "
                          "'word v1 ... vD'")
@@ -133,13 +170,25 @@ def category_vectors(path: str | Path, categories=CATEGORIES) -> np.ndarray:
     return np.stack(rows).astype(np.float32)
 
 
-@functools.lru_cache(maxsize=8)
 def category_table(path: str | Path | None) -> WordTable:
     """The WordTable of a config's word_vectors: the file's, or the stand-in (None).
-    Read once per process and path (models are built several times per run)."""
+    Read once per process, path and file version (size and modification time: models
+    are built several times per run, and a file changed meanwhile is read again)."""
+    if path is None:
+        return _table(None, None)
+    try:
+        st = os.stat(path)
+        version = (st.st_size, st.st_mtime_ns)
+    except OSError:
+        version = None                       # read_vectors names what is wrong
+    return _table(str(path), version)
+
+
+@functools.lru_cache(maxsize=8)
+def _table(path: str | None, version) -> WordTable:
     if path is None:
         return WordTable.of(stand_in(), STAND_IN)
-    return WordTable.of(category_vectors(path), str(path))
+    return WordTable.of(category_vectors(path), path)
 
 
 def label(word_vectors: str | None) -> str:

@@ -100,21 +100,22 @@ def fast_weights(model, cfg: TestTime, base_params, impl: str = "auto"):
 
 
 def tpn_policy(model, tpn: TPN, cfg: TestTime, name: str = "TPN", dropout: float = 0.0,
-               impl: str = "auto") -> Policy:
+               impl: str = "auto", box_scale: float = 1.0) -> Policy:
     """policy_params = {"base": navigation variables, "tpn": TPN variables}. `dropout`:
-    the navigation model's rate, used with cfg.tpn_train_mode only.
+    the navigation model's rate, used with cfg.tpn_train_mode only. box_scale multiplies
+    the boxes the model reads (the release's models read pixel boxes: models/release.py).
 
     Where no dropout is applied (train mode off, or a rate of 0: an all-ones mask) the
     policy is the one without train mode and rate, so those spellings share one compiled
     evaluation (compile_cache.py)."""
     if not cfg.tpn_train_mode or dropout == 0:
         cfg, dropout = dataclasses.replace(cfg, tpn_train_mode=False), 0.0
-    return _tpn_policy(model, tpn, cfg, name, dropout, impl)
+    return _tpn_policy(model, tpn, cfg, name, dropout, impl, float(box_scale))
 
 
 @compiled_once
 def _tpn_policy(model, tpn: TPN, cfg: TestTime, name: str, dropout: float,
-                impl: str) -> Policy:
+                impl: str, box_scale: float = 1.0) -> Policy:
     def init(batch, params):
         fw = fast_weights(model, cfg, params["base"], impl)
         size = longest_episode()
@@ -131,6 +132,8 @@ def _tpn_policy(model, tpn: TPN, cfg: TestTime, name: str, dropout: float,
         reset = fresh if cfg.reset_every <= 0 else fresh | (steps % cfg.reset_every == 0)
         fast = fw.reset(params["base"], carry.fast, reset)
         inputs = model_inputs(scenes, obs)
+        if box_scale != 1.0:
+            inputs = inputs._replace(box=inputs.box * box_scale)
         if cfg.tpn_train_mode:       # the release's "+TPN" evaluation: dropout active
             inputs = inputs._replace(drop=dropout_mask(
                 jax.random.fold_in(key, 1), dropout, model.dropout_shape(B)))
@@ -194,14 +197,19 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
     if ckpt.best.latest_step() is None:
         raise FileNotFoundError(f"{run_dir}: no best-on-val TPN checkpoint yet")
     tpn_params, _ = ckpt.restore(like, best=True)
-    name = f"{nav_cfg.model}+TPN" + ("" if cfg.when == "deadlock" else f"-{cfg.when}") + \
-        ("" if cfg.target == "tpn" else f"-{cfg.target}") + \
-        ("-train" if cfg.tpn_train_mode else "") + \
-        ("-state-placement" if cfg.placement == "state" else "")
-    # ("-train": dropout on, the release's confound)
+    name = tpn_name(nav_cfg.model, cfg)
     return tpn_policy(model, tpn, cfg.test_time(), name,
                       float(getattr(nav_cfg, "dropout", 0.0))), \
         {"base": base_params, "tpn": tpn_params}, nav_cfg, cfg
+
+
+def tpn_name(base: str, cfg: TestTime | TPNConfig) -> str:
+    """The test-time policy's name: base+TPN and the settings that differ from the
+    paper's ("-train": dropout on, the release's confound)."""
+    return f"{base}+TPN" + ("" if cfg.when == "deadlock" else f"-{cfg.when}") + \
+        ("" if cfg.target == "tpn" else f"-{cfg.target}") + \
+        ("-train" if cfg.tpn_train_mode else "") + \
+        ("-state-placement" if cfg.placement == "state" else "")
 
 
 def default_batch_size(base_params, cfg: TestTime | TPNConfig | str, impl: str = "auto",

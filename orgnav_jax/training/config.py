@@ -102,6 +102,10 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     target_input: TargetInput = "word_vector"
     word_vectors: str | None = None   # a GloVe text file; None: the stand-in (seeded
                                       # random unit vectors, models/word_vectors.py)
+    word_vectors_sha256: str | None = None   # sha256 of the (22, D) vectors read from
+                                      # word_vectors, set when a run starts (given: the
+                                      # vectors must be these); evaluation and resume
+                                      # refuse other vectors (training/runs.py)
     # VTNet (model "vtnet": models/vtnet.py, docs/vtnet.md; issue 43). The transformer's
     # width (the release's d_model, 256 at paper widths), heads, FFN width and layers; the
     # per-cell width is fuse_channels and the LSTM width hidden. Fields added within config
@@ -209,6 +213,7 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"config field 'dropout' must lie in [0, 1), got {self.dropout}")
         check_ranges(self, FIELD_RANGES, "config field")
+        check_word_vectors_fields(self)
         check_vtnet(self)
         if self.savn:
             for name, ok, want in (("il", self.il == "none", "'none' with savn"),
@@ -246,6 +251,27 @@ FIELD_RANGES: dict[str, Range] = {
     "pretrain_weight_decay": NON_NEGATIVE, "pretrained_lr_scale": NON_NEGATIVE,
     "pretrain_lr_drop": Range(lo=0, note="0: no drop"),
 }
+
+
+def check_word_vectors_fields(cfg: TrainConfig) -> None:
+    """word_vectors only where a model reads them (WE / SAVN's target: model 'we' with
+    target_input 'word_vector'), as a non-empty path; word_vectors_sha256 only with it,
+    as 64 hex digits. ValueError naming the field (a file given to a model that reads
+    none was kept in the config and silently ignored)."""
+    reads = cfg.model == "we" and cfg.target_input == "word_vector"
+    if cfg.word_vectors is not None and (not reads or not cfg.word_vectors.strip()):
+        why = (f"model {cfg.model!r} reads no word vectors" if cfg.model != "we" else
+               f"target_input {cfg.target_input!r} reads no word vectors" if not reads
+               else "an empty path")
+        raise ValueError(f"config field 'word_vectors': {cfg.word_vectors!r}, expected a "
+                         "GloVe text file, with model 'we' and target_input 'word_vector' "
+                         f"(WE, SAVN): {why}")
+    digest = cfg.word_vectors_sha256
+    if digest is not None and (cfg.word_vectors is None or len(digest) != 64 or
+                               any(c not in "0123456789abcdef" for c in digest)):
+        raise ValueError(f"config field 'word_vectors_sha256': {digest!r}, expected 64 "
+                         "lower-case hex digits, with word_vectors (the sha256 of its "
+                         "vectors)")
 
 
 def check_vtnet(cfg: TrainConfig) -> None:

@@ -32,7 +32,8 @@ from orgnav_jax.errors import UserError
 from orgnav_jax.training import savn, scale
 from orgnav_jax.training.driver import (
     Stage, run_population, run_stage)
-from orgnav_jax.training.runs import device_splits, model_policy, preflight
+from orgnav_jax.training.runs import (
+    device_splits, keep_word_vectors, model_policy, preflight)
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 
 
@@ -180,6 +181,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     stop_after_chunks ends early (for tests of kill-and-resume)."""
     if resume and cfg.savn:
         check_savn_resume(cfg.run_dir)
+    cfg = keep_word_vectors(cfg, resume)     # the run keeps the sha256 of its vectors
     mesh = scale.make_mesh(cfg.devices)
     scale.check_batch(cfg.num_envs, mesh)
     # config ranges, scenes (their widths those of a resumed run's checkpoints), memory:
@@ -210,6 +212,7 @@ def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = 
         return [train(cfgs[0], resume, progress, stop_after_chunks)]
     for c in cfgs:
         c.validate()
+    cfgs = [keep_word_vectors(c, resume) for c in cfgs]
     mesh = scale.make_mesh(cfg.devices)
     scale.check_batch(cfg.num_envs, mesh)
     scenes = preflight(cfgs[0], resumed=[c.run_dir for c in cfgs] if resume else [])

@@ -78,16 +78,51 @@ def preflight(cfg: TrainConfig, resumed=()):
     if cfg.savn:
         from orgnav_jax.training.savn import check_savn_config
         check_savn_config(cfg)
-    if cfg.model == "we" and cfg.target_input == "word_vector" and cfg.word_vectors:
-        from orgnav_jax.models.word_vectors import category_table
-        category_table(cfg.word_vectors)      # a missing or malformed file: one line
-    scenes = scenes_for(cfg)
+    check_word_vectors(cfg, "--word-vectors-sha256")   # a missing or malformed file, or
+    scenes = scenes_for(cfg)                         # other vectors: one line
     check_training_scenes(scenes, cfg)
     for run_dir in resumed:
         if (Path(run_dir) / "checkpoints").is_dir():     # nothing is created elsewhere
             RunCheckpoints(run_dir).check_scenes(scenes, scenes_name(cfg))
     check_memory(cfg, scenes)
     return scenes
+
+
+def check_word_vectors(cfg: TrainConfig, whose: str) -> str | None:
+    """The sha256 of the word vectors cfg.word_vectors holds now (None without a file);
+    ValueError naming the file when it is missing or malformed, or when cfg keeps a
+    sha256 (word_vectors_sha256: `whose`, e.g. the run that was trained with it) that is
+    not theirs: a run is never evaluated or resumed with other vectors than its own."""
+    if not cfg.word_vectors:
+        return None
+    from orgnav_jax.models.word_vectors import category_table
+    table = category_table(cfg.word_vectors)
+    kept = cfg.word_vectors_sha256
+    if kept is not None and kept != table.sha256:
+        raise ValueError(f"word vectors {cfg.word_vectors}: not the vectors of {whose} "
+                         f"(sha256 {table.sha256[:12]}..., expected {kept[:12]}...): the file "
+                         "was changed or replaced; give the vectors the run was trained "
+                         "with")
+    return table.sha256
+
+
+def keep_word_vectors(cfg: TrainConfig, resume: bool = False) -> TrainConfig:
+    """cfg with the sha256 of its word vectors (kept in the run's config.json): a fresh
+    run records the vectors it reads; a resumed run's saved sha256 must be that of the
+    file now (ValueError naming the file otherwise). A run saved before the sha256 was
+    kept resumes without it (nothing to compare)."""
+    if not cfg.word_vectors:
+        return cfg
+    whose = f"the run {cfg.run_dir}" if resume else "--word-vectors-sha256"
+    if cfg.word_vectors_sha256 is None and resume:
+        from orgnav_jax.training.run_dir import is_run_dir
+        if not is_run_dir(cfg.run_dir):
+            return cfg                   # check_run_dir: "holds no run"
+        kept = load_config(cfg.run_dir).word_vectors_sha256
+        if kept is None:
+            return cfg
+        cfg = dataclasses.replace(cfg, word_vectors_sha256=kept)
+    return dataclasses.replace(cfg, word_vectors_sha256=check_word_vectors(cfg, whose))
 
 
 def check_tpn_base(nav_cfg: TrainConfig, base_dir) -> None:
@@ -122,6 +157,7 @@ def load_run_model(run_dir: str | Path, best: bool = True):
     the latest); its scenes' feature widths must be those the checkpoint was trained on
     (checked before the model is built)."""
     cfg = load_config(run_dir)
+    check_word_vectors(cfg, f"the run {run_dir}")       # the vectors it was trained with
     scenes = scenes_for(cfg)
     ckpt = RunCheckpoints(run_dir)
     best = best and ckpt.best.latest_step() is not None
