@@ -5,6 +5,9 @@ multi_heads 1).
 
     python experiments/parity_tpn.py [--mirror DIR] [--torch-python PY] [--tol 1e-4]
 
+A missing mirror, a --torch-python that is not there or cannot import torch: one line,
+exit 2, before anything runs (the CLIs' convention, orgnav_jax.errors.run_cli).
+
 A development check beside the shared parity tool (which covers the navigation outputs;
 its README asks for the TPN head's own): it needs a git mirror of the release (fetch
 github:xiaobaishu0097/ECCV-VN; default ../.mirror/xiaobaishu0097+ECCV-VN/repo beside the
@@ -23,14 +26,14 @@ relative difference max|ours - release| / max|release| over all steps is reporte
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
-
-import os
 
 ROOT = Path(__file__).resolve().parents[1]
 MIRROR = os.environ.get("PARITY_MIRROR",
@@ -168,7 +171,24 @@ def jax_side(npz: str, tol: float) -> int:
     return 0 if worst <= tol else 1
 
 
-def main():
+def check_torch_python(python: str) -> None:
+    """`python` runs and imports torch; UserError naming it otherwise."""
+    from orgnav_jax.errors import UserError
+    found = shutil.which(python)
+    if found is None:
+        raise UserError(f"--torch-python {python}: no such executable (expected a Python "
+                        "with torch; default the parity tool's venv, or PARITY_VENV)")
+    try:
+        done = subprocess.run([found, "-c", "import torch"], capture_output=True, text=True,
+                              timeout=300)
+    except (OSError, subprocess.SubprocessError) as err:
+        raise UserError(f"--torch-python {python}: cannot be run ({err})") from None
+    if done.returncode:
+        last = (done.stderr.strip().splitlines() or ["?"])[-1]
+        raise UserError(f"--torch-python {python}: cannot import torch ({last})")
+
+
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--torch", help=argparse.SUPPRESS)
     ap.add_argument("--mirror", default=MIRROR, help="git mirror of xiaobaishu0097/ECCV-VN")
@@ -178,25 +198,33 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--soft", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--tol", type=float, default=1e-4)
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     if a.torch:
         return torch_side(a.torch, a.episodes, a.steps, a.seed, a.soft, a.mirror)
-    if subprocess.run(["git", "-C", a.mirror, "rev-parse", "HEAD"],
-                      capture_output=True).returncode:
-        sys.exit(f"error: no release mirror at {a.mirror}: fetch github:xiaobaishu0097/ECCV-VN "
-                 "(or --mirror)")
+    from orgnav_jax.errors import UserError
+    if not Path(a.mirror).is_dir() or subprocess.run(
+            ["git", "-C", a.mirror, "rev-parse", "HEAD"], capture_output=True).returncode:
+        raise UserError(f"--mirror {a.mirror}: no git mirror of the release there: fetch "
+                        "github:xiaobaishu0097/ECCV-VN (or give --mirror DIR, PARITY_MIRROR)")
+    check_torch_python(a.torch_python)
     rc = 0
     for soft in (False, True):
         print(("soft attention (small r)" if soft else "release-like weights") + ":")
         with tempfile.TemporaryDirectory() as tmp:
             out = str(Path(tmp) / "release.npz")
-            subprocess.run([a.torch_python, __file__, "--torch", out, "--mirror", a.mirror,
-                            "--episodes", str(a.episodes), "--steps", str(a.steps),
-                            "--seed", str(a.seed)]
-                           + (["--soft"] if soft else []), check=True)
+            done = subprocess.run([a.torch_python, __file__, "--torch", out, "--mirror",
+                                   a.mirror, "--episodes", str(a.episodes), "--steps",
+                                   str(a.steps), "--seed", str(a.seed)]
+                                  + (["--soft"] if soft else []))
+            if done.returncode:
+                raise UserError(f"the release's side in {a.torch_python} failed (exit "
+                                f"{done.returncode}; its output is above)")
             rc |= jax_side(out, a.tol)
     return rc
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    if "--torch" in sys.argv:     # the release's side: a Python with torch, maybe no orgnav_jax
+        sys.exit(main())
+    from orgnav_jax.errors import run_cli
+    sys.exit(run_cli(main))

@@ -30,14 +30,19 @@ A file not made yet gives no choice (the defaults then stay, and the test skips 
 Each choice is the variant with the highest val success (SPL breaks ties); a choice over
 several rows or bases takes the mean over them. It writes choices.json (the choices with
 their val numbers; tests/test_val_choices.py ties the package's defaults to it) and
-choices.md (the table in docs/results.md).
+choices.md (the table in docs/results.md). Every file is read, through a typed reader,
+before either is written: a truncated or malformed sweep file is one line naming it and
+its field, exit 2 (so is an option: the script takes none).
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
+
+from orgnav_jax.errors import read_json, read_number, read_object, read_str, run_cli
 
 OUT = Path(__file__).resolve().parent / "results" / "val_choices"
 TPN_BASES = {"baseline-ours-s100": "Baseline", "org_il-cause-w0.3-s100": "ORG + IL"}
@@ -60,13 +65,52 @@ def mean(records: list[dict]) -> dict:
     return {m: sum(r[m] for r in records) / len(records) for m in ("success", "spl")}
 
 
+def read_sweep(path: Path) -> dict[str, dict]:
+    """The typed reader of a val_sweep.py-form JSON: {variant: {seed: {success, spl: numbers,
+    row: a string, overrides: an object}}}; ValueError naming the file and field."""
+    doc = read_object(read_json(path, "a val sweep JSON"), path,
+                      "a JSON object {variant: {seed: record}}")
+    for variant, by_seed in doc.items():
+        read_object(by_seed, f"{path}: variant {variant!r}", "an object {seed: record}")
+        if not by_seed:
+            raise ValueError(f"{path}: variant {variant!r} holds no run")
+        for seed, record in by_seed.items():
+            where = f"{path}: {variant!r} seed {seed!r}"
+            if not seed.lstrip("-").isdigit():
+                raise ValueError(f"{where}: expected an integer seed")
+            read_object(record, where)
+            for metric in ("success", "spl"):
+                read_number(record, metric, where)
+            read_str(record, "row", where)
+            read_object(record.get("overrides"), f"{where}: field 'overrides'")
+    return doc
+
+
+def read_tpn_sweep(path: Path) -> dict[str, dict]:
+    """The typed reader of a tpn_lr_sweep.py record -> its results {lr: {success, spl}};
+    ValueError naming the file and field."""
+    doc = read_object(read_json(path, "a TPN lr sweep JSON"), path)
+    results = read_object(doc.get("results"), f"{path}: field 'results'")
+    for lr, overall in results.items():
+        where = f"{path}: results[{lr!r}]"
+        try:
+            float(lr)
+        except ValueError:
+            raise ValueError(f"{where}: expected a learning rate as the key") from None
+        read_object(overall, where)
+        for metric in ("success", "spl"):
+            read_number(overall, metric, where)
+    read_str(doc, "split", path)
+    return results
+
+
 def sweep(*paths: Path) -> dict[str, dict]:
     """val_sweep.py JSONs (runs of one variant may be spread over several) -> {variant:
     {success, spl, overrides, row, seeds}} (mean over seeds)."""
     doc = {}
     for path in paths:
         if path.exists():
-            for variant, by_seed in json.loads(path.read_text()).items():
+            for variant, by_seed in read_sweep(path).items():
                 doc.setdefault(variant, {}).update(by_seed)
     out = {}
     for variant, by_seed in doc.items():
@@ -109,7 +153,7 @@ def tpn_choice(root: Path) -> dict:
         for run in TPN_RUNS:
             path = root / f"tpn_placement_{base}_{run}.json"
             if path.exists():
-                per.setdefault(base, {})[run] = json.loads(path.read_text())["results"]
+                per.setdefault(base, {})[run] = read_tpn_sweep(path)
     bases = [b for b in per if set(per[b]) == set(TPN_RUNS)]
     if not bases:
         return {}
@@ -210,8 +254,9 @@ def markdown(ch: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> int:
-    ch = choices()
+def main(argv: list[str] | None = None) -> int:
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args(argv)
+    ch = choices(OUT)
     (OUT / "choices.json").write_text(json.dumps(ch, indent=1) + "\n")
     text = markdown(ch)
     (OUT / "choices.md").write_text(text)
@@ -220,4 +265,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))     # the CLIs' convention: `error: ...`, exit 2

@@ -444,3 +444,141 @@ def test_val_sweep_pretrains_a_vtnet_variant_first_and_reads_a_finished_run(
     calls.clear()
     val_sweep.main(argv)                          # both finished: read, nothing trained
     assert calls == []
+
+
+# ---- issue 55 (bad input, round four): the sweep scripts and the TPN parity check ------
+
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _fake_evaluations(monkeypatch, calls: list):
+    """api.evaluate_run recorded and faked (no evaluation runs): it writes a results
+    JSON at `out`, as the real one does."""
+    from orgnav_jax import api
+
+    def fake(run_dir, split="test", **kw):
+        calls.append((str(run_dir), split, {k: v for k, v in kw.items() if k != "out"}))
+        result = {"overall": {"success": 0.5, "spl": 0.25}, "per_room_type": {},
+                  "policy": Path(run_dir).name, "split": split}
+        Path(kw["out"]).write_text(json.dumps(result))
+        return result
+    monkeypatch.setattr(api, "evaluate_run", fake)
+
+
+def test_tpn_lr_sweep_checks_its_run_outputs_and_what_it_resumes(tmp_path, monkeypatch,
+                                                                 cli_error):
+    """tpn_lr_sweep.py overwrote a user's --out, read whatever results file sat at its
+    per-lr path as the sweep's, and on a missing run ended in a traceback naming another
+    problem: each is one line, exit 2, before any evaluation; a resume keeps only what
+    the record at --out holds for the same run, split and scope."""
+    from orgnav_jax.tpn.config import get_tpn_config
+    from orgnav_jax.training.config import get_config
+    sweep = _script("tpn_lr_sweep")
+    calls = []
+    _fake_evaluations(monkeypatch, calls)
+    tpn = tmp_path / "base" / "tpn"
+    tpn.mkdir(parents=True)
+    (tpn / "config.json").write_text(get_tpn_config(base_dir=str(tmp_path / "base")).to_json())
+    (tmp_path / "base" / "config.json").write_text(get_config("baseline").to_json())
+    out = tmp_path / "sweep.json"
+    mine = tmp_path / "mine.json"
+    mine.write_text("my notes\n")
+    (tmp_path / "mine.lr0.001.json").write_text("{}")
+    cases = [
+        ([tmp_path / "nope", "--out", out], f"{tmp_path / 'nope'}/config.json not found: "
+                                            f"{tmp_path / 'nope'} is not a TPN (stage 2) run"),
+        ([tmp_path / "base", "--out", out], "not a TPN (stage 2) run, but a training one"),
+        ([tpn, "--out", mine], f"--out {mine} exists and is not a TPN learning-rate sweep"),
+        ([tpn, "--out", tmp_path / "mine.new", "--lrs", "1e-3"],
+         "the results file of lr 0.001 " + str(tmp_path / "mine.lr0.001.json") +
+         " exists and is not an evaluation results JSON"),
+        ([tpn, "--out", out, "--lrs", "-1"], "TPN config field 'tpn_lr': -1.0"),
+        ([tpn, "--out", out, "--lrs", "1e-3", "0.001"], "--lrs: 0.001 given twice"),
+        ([tpn, "--out", out, "--scope", "every"], "TPN config field 'scope': 'every'"),
+        ([tpn, "--out", ""], "--out is empty"),
+    ]
+    for argv, message in cases:
+        assert message in cli_error(sweep.main, argv), argv
+    assert calls == [] and not out.exists() and mine.read_text() == "my notes\n"
+    # a first pass, interrupted after lr 0; another policy's results at the path of 1e-3
+    record = {"tpn_dir": str(tpn), "split": "val", "scope": "all",
+              "results": {"0": {"success": 0.7, "spl": 0.3}}}
+    out.write_text(json.dumps(record))
+    other = {"overall": {"success": 0.99, "spl": 0.9}, "per_room_type": {}, "split": "test"}
+    (tmp_path / "sweep.lr0.001.json").write_text(json.dumps(other))
+    assert sweep.main([str(tpn), "--out", str(out), "--lrs", "0", "1e-3"]) == 0
+    assert calls == [(str(tpn), "val", {"tpn_lr": 1e-3, "scope": "all", "progress": False})]
+    done = json.loads(out.read_text())
+    assert done["results"] == {"0": {"success": 0.7, "spl": 0.3},
+                               "0.001": {"success": 0.5, "spl": 0.25}}
+    # the record of another split (or run, or scope) is not this sweep's
+    for change in ({"split": "test"}, {"tpn_dir": str(tmp_path)}, {"scope": "actor"}):
+        out.write_text(json.dumps({**record, **change}))
+        line = cli_error(sweep.main, [tpn, "--out", out, "--lrs", "0"])
+        assert f"--out {out}: the record of another sweep" in line, change
+    out.write_text(json.dumps({**record, "results": {"0": {"success": "high"}}}))
+    assert "results['0']: field 'success': expected a finite number" in cli_error(
+        sweep.main, [tpn, "--out", out, "--lrs", "0"])
+    assert len(calls) == 1
+
+
+def test_savn_act_sweep_refuses_a_users_file_before_any_evaluation(tmp_path, monkeypatch,
+                                                                   cli_error):
+    """savn_act_sweep.py overwrote a user's --out after two full val evaluations: every
+    run, --out and each results file are checked first (one line, exit 2, nothing
+    evaluated or written); its own record is replaced."""
+    from orgnav_jax.training.config import get_config
+    sweep = _script("savn_act_sweep")
+    calls = []
+    _fake_evaluations(monkeypatch, calls)
+    runs = []
+    for name, preset, seed in (("dsavn-s100", "dsavn", 100), ("savn-s101", "savn", 101),
+                               ("base-s102", "baseline", 102), ("dsavn2-s100", "dsavn", 100)):
+        run = tmp_path / name
+        run.mkdir()
+        (run / "config.json").write_text(get_config(preset, seed=seed,
+                                                    run_dir=str(run)).to_json())
+        runs.append(run)
+    out = tmp_path / "act.json"
+    mine = tmp_path / "mine.json"
+    mine.write_text('{"my": "table"}')
+    (tmp_path / "act.savn-s101.sample.json").write_text("my results\n")
+    cases = [
+        ([runs[0], "--out", mine], f"--out {mine} exists and is not a sweep JSON"),
+        ([runs[0], runs[2], "--out", out], f"{runs[2]}: a baseline run without SAVN"),
+        ([runs[0], runs[3], "--out", out], "two runs of seed 100"),
+        ([runs[0], tmp_path / "none", "--out", out], "is not a training run directory"),
+        ([runs[0], runs[1], "--out", out], "the results file of savn-s101 (sample) "
+                                           f"{tmp_path / 'act.savn-s101.sample.json'} exists "
+                                           "and is not an evaluation results JSON"),
+    ]
+    for argv, message in cases:
+        assert message in cli_error(sweep.main, argv), argv
+    assert calls == [] and not out.exists()
+    assert mine.read_text() == '{"my": "table"}'
+    assert sweep.main([str(runs[0]), "--out", str(out)]) == 0
+    assert [c[2]["savn_act"] for c in calls] == ["greedy", "sample"]
+    assert sweep.is_sweep_json(out) and set(json.loads(out.read_text())) == {"greedy", "sample"}
+    assert sweep.main([str(runs[0]), "--out", str(out)]) == 0       # its own: replaced
+
+
+def test_parity_tpn_without_mirror_or_torch_is_one_line_exit_2(tmp_path, cli_error):
+    """parity_tpn.py exited 1 on a missing mirror and ended in a traceback on a missing
+    --torch-python: one line, exit 2, before anything runs."""
+    parity = _script("parity_tpn")
+    line = cli_error(parity.main, ["--mirror", tmp_path / "none"])
+    assert f"--mirror {tmp_path / 'none'}: no git mirror of the release there" in line
+    import subprocess
+    mirror = tmp_path / "mirror"
+    subprocess.run(["git", "init", "-q", str(mirror)], check=True)
+    subprocess.run(["git", "-C", str(mirror), "-c", "user.name=t", "-c", "user.email=t@t",
+                    "commit", "-q", "--allow-empty", "-m", "x"], check=True)
+    line = cli_error(parity.main, ["--mirror", mirror, "--torch-python", tmp_path / "py"])
+    assert f"--torch-python {tmp_path / 'py'}: no such executable" in line
+    if importlib.util.find_spec("torch") is None:        # (with torch the check would run)
+        line = cli_error(parity.main, ["--mirror", mirror, "--torch-python", sys.executable])
+        assert f"--torch-python {sys.executable}: cannot import torch" in line

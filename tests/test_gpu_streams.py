@@ -65,3 +65,33 @@ def test_pack_brings_back_small_files_tpn_bases_and_the_runs_that_can_go_on(
         names = {n for n in t.getnames() if n.endswith("/state")}
     assert names == {"runs/org-s0/best/1000/state", "runs/vt-s100/checkpoints/900/state",
                      "runs/il-s0/checkpoints/300/state", "runs/il-s1/checkpoints/300/state"}
+
+
+def test_run_sh_without_its_arguments_is_one_line_and_usage_exit_2(tmp_path):
+    """Issue 55: `bash experiments/gpu_streams/run.sh` with no arguments died on an unbound
+    variable: every argument and OUT is checked first; a usage line, one `error:` line,
+    exit 2, nothing written or started."""
+    import os
+    import subprocess
+    run_sh = PACK.with_name("run.sh")
+    env = {k: v for k, v in os.environ.items() if k not in ("OUT", "SPEC")}
+    (tmp_path / "file").write_text("mine")
+    cases = [
+        ([], {}, "expected DEADLINE_S, COMMIT and at least one stream, got 0 argument(s)"),
+        (["60", "abc"], {}, "got 2 argument(s)"),
+        (["soon", "abc", "baseline"], {"OUT": str(tmp_path / "o")}, "DEADLINE_S 'soon'"),
+        (["60", "", "baseline"], {"OUT": str(tmp_path / "o")}, "COMMIT is empty"),
+        (["60", "abc", "baseline"], {}, "OUT is not set"),
+        (["60", "abc", "baseline"], {"OUT": str(tmp_path / "file")}, "is not a directory"),
+        (["60", "abc", "baseline"], {"OUT": str(tmp_path / "o"), "SPEC": str(tmp_path / "s")},
+         "SPEC " + str(tmp_path / "s") + ": no such file"),
+        (["60", "abc", " "], {"OUT": str(tmp_path / "o")}, "a stream is empty"),
+    ]
+    for argv, extra, message in cases:
+        done = subprocess.run(["bash", str(run_sh), *argv], env={**env, **extra},
+                              capture_output=True, text=True, cwd=tmp_path, timeout=60)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2, (argv, done.stderr)
+        assert len(lines) == 2 and lines[0].startswith("usage: ") and \
+            lines[1].startswith("error: ") and message in lines[1], (argv, done.stderr)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]

@@ -67,3 +67,51 @@ def test_defaults_are_the_choices(val_choices):
         assert get_config("vtnet_scratch").vtnet_mask == chosen["vtnet_mask"]
     args = train_cli.parser().parse_args(["--preset", "full"])
     assert train_cli.pipeline_tpn_fields(args) == {}        # the default: TPN_LR
+
+
+def test_a_truncated_sweep_or_an_unknown_option_is_one_line_and_writes_nothing(
+        val_choices, tmp_path, monkeypatch, capsys):
+    """Issue 55: val_choices.py ended in a traceback on a truncated sweep file and ran
+    (rewriting its record) whatever options it was given: a sweep file is read through
+    its typed reader (one line naming the file and field, exit 2) before anything is
+    written; an unknown option is argparse's usage and exit 2."""
+    from orgnav_jax.errors import run_cli
+    monkeypatch.setattr(val_choices, "OUT", tmp_path)
+    record = {"d0": {"100": {"success": 0.6, "spl": 0.3, "env_steps": 1, "row": "baseline",
+                             "overrides": {"dropout": 0.0}}}}
+    text = json.dumps(record)
+    tpn = {"tpn_dir": "r", "split": "val", "scope": "all",
+           "results": {"0.001": {"success": 0.5, "spl": 0.2}}}
+    cases = [
+        ("dropout.json", text[: len(text) // 2], "dropout.json: not a val sweep JSON"),
+        ("dropout.json", json.dumps({"d0": {"100": {**record["d0"]["100"],
+                                                    "success": "high"}}}),
+         "dropout.json: 'd0' seed '100': field 'success': expected a finite number"),
+        ("dropout.json", json.dumps({"d0": {"s100": record["d0"]["100"]}}),
+         "'d0' seed 's100': expected an integer seed"),
+        ("dropout.json", json.dumps({"d0": []}), "variant 'd0': expected an object"),
+        ("savn.json", json.dumps({"d0": {"100": {"success": 0.5, "spl": 0.1,
+                                                  "row": "dsavn"}}}),
+         "field 'overrides': expected a JSON object, got null"),
+        ("tpn_placement_baseline-ours-s100_tpn.json",
+         json.dumps({**tpn, "results": {"fast": tpn["results"]["0.001"]}}),
+         "results['fast']: expected a learning rate as the key"),
+    ]
+    for name, content, message in cases:
+        for path in tmp_path.iterdir():
+            path.unlink()
+        if name == "savn.json":
+            (tmp_path / "dropout.json").write_text(text)
+        if name.startswith("tpn_placement"):
+            for run in val_choices.TPN_RUNS:
+                (tmp_path / f"tpn_placement_baseline-ours-s100_{run}.json").write_text(
+                    json.dumps(tpn))
+        (tmp_path / name).write_text(content)
+        before = sorted(p.name for p in tmp_path.iterdir())
+        assert run_cli(val_choices.main, []) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ") and message in err[0], (name, err)
+        assert sorted(p.name for p in tmp_path.iterdir()) == before     # nothing written
+    with pytest.raises(SystemExit) as exit_:
+        val_choices.main(["--out", str(tmp_path)])
+    assert exit_.value.code == 2 and "unrecognized arguments: --out" in capsys.readouterr().err

@@ -15,6 +15,21 @@
 #        G=/tmp/g/outN (e.g. a val sweep with --out $G); its runs in $G/runs and records
 #        $G/*.json, *.md are packed too
 set -u
+usage() {
+  echo "usage: OUT=OUT_DIR [SPEC=spec.json] bash experiments/gpu_streams/run.sh DEADLINE_S COMMIT \"ROWS\" ..." >&2
+  echo "error: $1" >&2; exit 2
+}
+# every argument checked before anything is written or started
+[ $# -ge 3 ] || usage "expected DEADLINE_S, COMMIT and at least one stream, got $# argument(s)"
+[[ $1 =~ ^[0-9]+$ ]] && [ "$1" -ge 1 ] || usage "DEADLINE_S '$1': expected whole seconds >= 1"
+[ -n "$2" ] || usage "COMMIT is empty: expected the commit of the tree copied"
+[ -n "${OUT:-}" ] || usage "OUT is not set: expected OUT=OUT_DIR (the packed results go there)"
+[ ! -e "$OUT" ] || [ -d "$OUT" ] || usage "OUT $OUT is not a directory"
+[ -z "${SPEC:-}" ] || [ -f "$SPEC" ] || usage "SPEC $SPEC: no such file"
+for rows in "${@:3}"; do
+  [ -n "${rows// /}" ] || usage "a stream is empty: expected rows of the spec or cmd:COMMAND"
+done
+mkdir -p "$OUT"
 T0=$(date +%s); DL=$1; export ORGNAV_CODE=$2; shift 2
 elapsed() { echo $(( $(date +%s) - T0 )); }
 # float32 as on CPU (no TF32); each process takes GPU memory as it needs it
