@@ -8,8 +8,9 @@
 kind: "BaseModel" (our `baseline`), "GraphModel" (our `org_released`) or
 "MetaMemoryGraphModel" (GraphModel + the TPN head: `net.tpn`, `net.tpn_params`), of
 xiaobaishu0097/ECCV-VN `models/`. Widths (global map channels, appearance width,
-categories, hidden size, LSTM layers) are read from the shapes, so a state dict of
-other widths loads too. `step` takes the release's layouts, batch first: state
+hidden size, LSTM layers) are read from the shapes, so a state dict of other widths
+loads too; the categories must be the 22 and the critic width the release's 64 (the
+model is built for those). `step` takes the release's layouts, batch first: state
 (B, G, 7, 7), appear (B, C, d), info (B, C, 5) = box (x1, y1, x2, y2, as given: the
 release feeds the detection file's pixel values, where our scenes' inputs are boxes / 300)
 and confidence, indicator (B, C, 1), action_probs (B, 6) (zeros at an episode start),
