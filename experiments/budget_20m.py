@@ -6,7 +6,7 @@
     python experiments/budget_20m.py --check    # recompute it; exit 1 on a difference
 
 Both tables (SHORT, LONG) were made before network parity (issue 39) and are kept in
-experiments/results/before_parity/ (docs/results.md, "Before parity").
+experiments/results/before_parity/ (docs/history/why-gains-small.md).
 
 budget.md has three tables, all from the runs' files (claims.read_table_dir: every
 results JSON checked against its per-episode outcomes; metrics.jsonl for the curves):
@@ -39,7 +39,7 @@ import knob  # noqa: E402  (sibling script: the adjacency reports)
 from orgnav_jax.errors import run_cli  # noqa: E402
 
 # Both tables were made before network parity (issue 39) and are kept in
-# results/before_parity (docs/results.md, "Before parity").
+# results/before_parity (docs/history/why-gains-small.md).
 RESULTS = Path(__file__).resolve().parent / "results" / "before_parity"
 SHORT, LONG = RESULTS / "table_5m", RESULTS / "table_20m"
 MILESTONES = (5_000_000, 10_000_000, 15_000_000, 20_000_000)

@@ -39,7 +39,7 @@ from orgnav_jax.constants import NUM_CATEGORIES  # noqa: E402
 from orgnav_jax.errors import read_field, read_json, read_object, run_cli  # noqa: E402
 
 # The knob was measured before network parity (issue 39): its points and the 5 M table
-# it compares with are kept in results/before_parity (docs/results.md, "Before parity").
+# it compares with are kept in results/before_parity (docs/history/why-gains-small.md).
 RESULTS = Path(__file__).resolve().parent / "results" / "before_parity"
 OUT = RESULTS / "knob"
 # (P, the table directory of its Baseline and ORG runs, the directory whose ORG runs

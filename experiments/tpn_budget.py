@@ -5,8 +5,8 @@
     python experiments/tpn_budget.py --out experiments/results/before_parity/tpn_budget --check
 
 The committed sweep was made before network parity (issue 39) and is kept in
-experiments/results/before_parity/tpn_budget (the default OUT; docs/results.md, "Before
-parity"); a sweep on the current networks takes an --out of its own.
+experiments/results/before_parity/tpn_budget (the default OUT;
+docs/history/why-gains-small.md); a sweep on the current networks takes an --out of its own.
 
 For each base row: its navigation run (5 M env steps, dropout 0: the table's config) in
 OUT/runs/<base>-s<seed>; for each budget a TPN trained on it for that many stage-2

@@ -30,7 +30,7 @@ A file not made yet gives no choice (the defaults then stay, and the test skips 
 Each choice is the variant with the highest val success (SPL breaks ties); a choice over
 several rows or bases takes the mean over them. It writes choices.json (the choices with
 their val numbers; tests/test_val_choices.py ties the package's defaults to it) and
-choices.md (the table in docs/results.md). Every file is read, through a typed reader,
+choices.md (docs/results.md links it). Every file is read, through a typed reader,
 before either is written: a truncated or malformed sweep file is one line naming it and
 its field, exit 2 (so is an option: the script takes none).
 """

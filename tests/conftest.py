@@ -1,10 +1,10 @@
 """Fixtures every test file shares: the "tiny" benchmark (16 rooms), built at most once
-per session (per xdist worker) and saved once (tiny_dir), sample generated rooms, and
-cli_error (a CLI's one-line error and exit code 2); the number of xdist workers.
+per pytest session (per xdist worker) and saved once (tiny_dir), sample generated rooms,
+and cli_error (a CLI's one-line error and exit code 2); the number of xdist workers.
 
-No session-wide on-disk jit cache is set up: on 2 cores, looking every compile up in one
-and writing it there cost more than the few programs a test's subprocess could read back
-(docs/testing.md).
+No on-disk jit cache is set up for the pytest session: on 2 cores, looking every compile
+up in one and writing it there cost more than the few programs a test's subprocess could
+read back (docs/testing.md).
 In one process jit's own cache serves a repeat; a cache the caller sets
 (JAX_COMPILATION_CACHE_DIR) is used as is.
 """
@@ -24,7 +24,8 @@ from orgnav_jax.scenes.synthetic import catalog, layout
 def pytest_xdist_auto_num_workers(config) -> int:
     """`-n auto` (pyproject's addopts): one worker per core this process may use, at most
     4: each worker holds its own jax and compiles what it runs (the largest process of a
-    2-worker suite reached 4.6 GB resident, `/usr/bin/time -v`, docs/testing.md)."""
+    2-worker suite reached 4.6 GB resident, `/usr/bin/time -v`,
+    docs/history/test-suite-time.md)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return max(1, min(cores or 1, 4))
 
@@ -41,7 +42,8 @@ def tiny_scenes() -> scenes.SceneSet:
 
 @pytest.fixture(scope="session")
 def tiny_dir(tmp_path_factory, tiny_scenes) -> str:
-    """tiny_scenes saved once per session (read-only for tests: copy it to change it)."""
+    """tiny_scenes saved once per pytest session (read-only for tests: copy it to change
+    it)."""
     path = tmp_path_factory.mktemp("scenes") / "tiny"
     scenes.save(tiny_scenes, path)
     return str(path)

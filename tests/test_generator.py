@@ -72,7 +72,7 @@ def test_room_arrays_deterministic():
 
 def test_build_deterministic(tiny_scenes):
     """A second build (only the first train room of each type) equals the matching
-    rows of the session's tiny build, field by field, on each room's states (next_state
+    rows of the pytest session's tiny build, field by field, on each room's states (next_state
     in the room's own indices: the two sets lay their rooms out differently)."""
     small = scenes.build("tiny", 0, rooms_per_type=(1, 0, 0))
     full = tiny_scenes

@@ -1,4 +1,4 @@
-"""experiments/gpu_streams/pack.py: what comes back from a GPU lease, on a hand-made
+"""experiments/gpu_streams/pack.py: what comes back from a GPU machine, on a hand-made
 /tmp/g (streams of table rows and a command stream)."""
 
 from __future__ import annotations

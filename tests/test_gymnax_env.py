@@ -295,7 +295,7 @@ def test_ppo_example_beats_random_on_val_rooms(tiny_scenes):
     """examples/ppo_gymnax.py: PPO-GRU trained on the 8 tiny train rooms (fixed seed)
     succeeds clearly more often than a random policy on the 4 unseen val rooms. Half the
     example's 150 k env steps: val success 0.135 at 75 k, 0.145 at 150 k, random 0.025
-    (20 s against 30 s alone; docs/testing.md)."""
+    (20 s against 30 s alone; docs/history/test-suite-time.md)."""
     import dataclasses
     ppo = _ppo()
     config = dataclasses.replace(ppo.Config(), total_timesteps=75_000)

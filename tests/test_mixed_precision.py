@@ -64,12 +64,13 @@ def test_bfloat16_training_beats_random_on_the_val_rooms(tmp_path, tiny_dir):
     and 2: 81 and 80 CPU-s to train). The release's networks (issue 39)
     start slower than the earlier ones (their initial policy is near uniform: an actor
     init of norm 0.01): at 163,840 steps, the budget before, the seeds reached 0.068,
-    0.014, 0.02 (random 0.027; measured 2026-12-03). Before issue 39 (docs/testing.md):
-    0.162, 0.129, 0.155 at 164 k; 0.101, 0.044, 0.0 at 82 k; 0.13, 0.07, 0.095 at 400 k.
+    0.014, 0.02 (random 0.027; measured 2026-12-03). Before issue 39
+    (docs/history/test-suite-time.md): 0.162, 0.129, 0.155 at 164 k; 0.101, 0.044, 0.0 at
+    82 k; 0.13, 0.07, 0.095 at 400 k.
     655,360 steps (64 chunks) since 2026-12-04: on an Intel Xeon (AVX-512) machine seed 0
     reached only 0.015 at 327,680 (its val curve there: 0.1 at 205 k, 0.025 at 328 k,
     0.105-0.155 at 450-490 k, 0.175-0.22 at 573-655 k; 0.259 val, 0.184 test at the end:
-    training diverges across CPUs, docs/testing.md)."""
+    training diverges across CPUs, docs/history/test-suite-time.md)."""
     from orgnav_jax.training import loop
     from orgnav_jax.training.config import get_config
     cfg = get_config("tiny", scenes_dir=tiny_dir, run_dir=str(tmp_path / "run"),

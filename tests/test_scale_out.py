@@ -332,7 +332,7 @@ def test_two_processes_resume_a_run_and_write_one_set_of_logs(tmp_path, runs_res
     together. The records equal a 1-process 2-device run's, and the last checkpoint (read
     back in this 1-device process) holds that run's parameters (float tolerance). (One
     job, not a fresh one and its resume: each 2-process job costs ~45 CPU-seconds of the
-    suite; docs/testing.md.)"""
+    suite; docs/history/test-suite-time.md.)"""
     out, r = runs_result                      # the worker's runs: the same computation
     assert r["half2_chunks"] == 2
     run = shutil.copytree(out / "half2", tmp_path / "run")

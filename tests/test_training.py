@@ -213,7 +213,7 @@ def test_trained_agent_beats_random_on_unseen_rooms(tmp_path, tiny_dir):
     chunks): at 400 k, the budget until 2026-12-04, an Intel Xeon (AVX-512) machine gave
     0.096 test success (random 0.032) where the AMD EPYC machines had given 0.22 on val;
     its val curve there: 0.125 at 410 k, 0.135-0.175 at 450-615 k, 0.32 at 655 k; 0.334
-    test success at 809 k (docs/testing.md)."""
+    test success at 809 k (docs/history/test-suite-time.md)."""
     cfg = get_config("tiny", scenes_dir=tiny_dir, run_dir=str(tmp_path / "run"),
                      total_env_steps=655_360)
     loop.train(cfg, progress=False)

@@ -7,7 +7,7 @@
 # experiments/results/table_5m, tar xf OUT_DIR/best_ROW.tar -C experiments/results/table_5m
 # (cat OUT_DIR/part_runs.tar* | tar x: to resume or test runs), then run_table.py --spec
 # SPEC --only ROWS rebuilds the table files from them (their runs are finished).
-# SAVN streams: their compile dominates on a GPU (docs/scale_out.md, the third lease).
+# SAVN streams: their compile dominates on a GPU (docs/scale_out.md, Figures).
 # usage: OUT=OUT_DIR [SPEC=spec.json] bash experiments/gpu_streams/run.sh DEADLINE_S COMMIT
 #            "rows of stream 1" "rows of stream 2" ...   (COMMIT: of the clean tree copied)
 #        "ROWS @S1 @S2" trains only those seeds (e.g. one SAVN seed per stream: SAVN runs

@@ -204,14 +204,14 @@ def _coef(u, x):
     (_lowrank): one product with v per step for both kernels. Written u @ x^T, not
     x @ u^T: the gradient for u then comes out in u's own layout (R, n); x @ u^T's came
     as (n, R) and was transposed (in the compiled update, the (64, 24, 784) transposes
-    and copies went from 14 to 8, docs/savn.md)."""
+    and copies went from 14 to 8, docs/history/savn-speed.md)."""
     return u @ x if x.ndim == 1 else (u @ x.T).T
 
 
 def _lowrank(coef, v):
     """sum_j coef_j v_j: coef (..., R), v (R, 4H) -> (..., 4H). A product (under vmap, a
     batched matrix-vector product); a multiply-reduce over the slots ran at about
-    1 GFLOP/s on CPU (docs/savn.md, speed)."""
+    1 GFLOP/s on CPU (docs/history/savn-speed.md)."""
     return coef @ v
 
 
@@ -411,8 +411,8 @@ def train_env_params(cfg) -> env.EnvParams:
 def unrolled(body, carry, xs):
     """jax.lax.scan(body, carry, xs) written out (a Python loop): under the second-order
     gradient XLA keeps each segment's residuals as they are instead of stacking them into
-    loop buffers: 1.15-1.4x the scan's speed, a 3-5x longer compile (docs/savn.md,
-    speed)."""
+    loop buffers: 1.15-1.4x the scan's speed, a 3-5x longer compile
+    (docs/history/savn-speed.md)."""
     outs = []
     for i in range(xs.shape[0]):
         carry, y = body(carry, xs[i])
