@@ -7,7 +7,7 @@ best val success (the test split is never touched).
     python experiments/val_sweep.py --name il --variants il-cause-w1=il:il_step=cause \\
         il-state-w1=il:il_step=state il-cause-w3=il:il_step=cause,il_weight=3
 
-(docs/results.md has the sweeps behind the tables.)
+(experiments/tables/val_sweeps.sh has the sweeps behind the tables' settings.)
 
 A variant is NAME=ROW[:FIELD=VALUE,...] (ROW a training preset, the fields TrainConfig
 overrides). Each (variant, seed) trains in OUT/runs/NAME-s<seed> (resumed when it has
