@@ -57,11 +57,12 @@ _D2 = {"detect_range_scale": 0.5, "peak_recall": 0.7, "min_box_area": 144.0,
 _D3 = {"detect_range_scale": 0.85, "peak_recall": 0.875, "min_box_area": 32.0,
        "false_positive_rate": 0.03, "fp_confidence_max": 0.5, "confidence_noise": 0.12,
        "confusion": 0.075, "box_jitter": 2.5, "appearance_noise": 0.75}
+_D5 = {k: round((_D1[k] + _D3[k]) / 2, 4) for k in _D1}     # halfway between d1 and d3
 # setting -> perception knobs over `small` (the order they were tried)
 SETTINGS: dict[str, dict] = {
     "g1": _G1, "g2": _G2, "g3": _G3,
     "g3d1": {**_G3, **_D1}, "g3d2": {**_G3, **_D2}, "g3d3": {**_G3, **_D3},
-    "g4": _G4, "g4d3": {**_G4, **_D3},
+    "g4": _G4, "g4d3": {**_G4, **_D3}, "g4d1": {**_G4, **_D1}, "g4d5": {**_G4, **_D5},
 }
 
 
