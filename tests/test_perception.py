@@ -185,3 +185,16 @@ def test_knobs_recorded_in_the_set_info():
     info = dict(builder.build(p, 0).info)
     assert info["perception.confusion"] == 0.1
     assert not any(k.startswith("perception.") for k, _ in builder.build("tiny", 0, num_rooms=1).info)
+
+
+def test_calibrated_preset_is_the_chosen_calibration_setting():
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "experiments" / "calibration.py"
+    spec = importlib.util.spec_from_file_location("calibration", path)
+    calibration = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(calibration)
+    preset = get_preset("calibrated")
+    assert preset.perception.changed() == calibration.SETTINGS[calibration.CHOSEN]
+    small = get_preset("small")
+    assert dataclasses.replace(preset, name="small", perception=Perception()) == small

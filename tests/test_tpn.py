@@ -338,4 +338,6 @@ def test_stage2_release_placement_labels_the_step_into_the_deadlock(loaded, base
         get_tpn_config(placement="release", deadlock="cosine")
     cfg = get_tpn_config(optim="release")         # the release's stage-2 optimiser, cap 30
     assert (cfg.lr, cfg.max_grad_norm, cfg.episode_cap) == (1e-4, 100.0, 30)
+    assert get_tpn_config() == cfg                 # the default optimiser brings them too
+    assert get_tpn_config(optim="ours").lr == 3e-4
     assert get_tpn_config(optim="release", episode_cap=50).episode_cap == 50

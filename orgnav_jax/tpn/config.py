@@ -189,12 +189,13 @@ V7_DEFAULTS = {"placement": "state", "optim": "ours"}
 
 
 def get_tpn_config(**fields) -> TPNConfig:
-    """Defaults with fields replaced; run_dir defaults to <base_dir>/tpn; optim "release"
-    fills STAGE2_OPTIM["release"]'s fields that are not given."""
+    """Defaults with fields replaced; run_dir defaults to <base_dir>/tpn; the optimiser
+    (optim, "release" by default) fills its STAGE2_OPTIM fields that are not given."""
     bad = sorted(set(fields) - FIELDS)
     if bad:
         raise ValueError(f"unknown TPN config field(s) {bad}; fields are {sorted(FIELDS)}")
-    cfg = TPNConfig(**{**STAGE2_OPTIM.get(fields.get("optim"), {}), **fields})
+    optim = fields.get("optim", TPNConfig.optim)     # the default optimiser's fields too
+    cfg = TPNConfig(**{**STAGE2_OPTIM.get(optim, {}), **fields})
     if not cfg.run_dir and cfg.base_dir:
         cfg = dataclasses.replace(cfg, run_dir=str(Path(cfg.base_dir) / "tpn"))
     return cfg.validate()
