@@ -291,8 +291,8 @@ def memory_skip(cfg, scenes, seeds: int = 1, tpn_cfg=None) -> dict | None:
         return None
     why = (f"skipped: the memory estimate {memory.human(need)} exceeds the "
            f"{memory.human(have)} {where}")
-    return {"skipped": why, "estimate_gb": round(need / 2**30, 1),
-            "available_gb": round(have / 2**30, 1)}
+    return {"skipped": why, "estimate_gb": round(need / 1e9, 1),
+            "available_gb": round(have / 1e9, 1)}
 
 
 def retime(row: dict, repeats: int) -> None:

@@ -33,3 +33,21 @@ def test_an_unknown_flop_count_is_shown_as_unknown_not_as_a_number():
     row.update(flops_per_env_step=1e9, _timed=lambda repeats: 4.0)
     tt.retime(row, 1)
     assert row["_run_s"] == 1.0 and row["gflops_per_s"] == 100.0
+
+
+def test_a_row_that_cannot_fit_is_skipped_with_its_estimate(tiny_scenes, monkeypatch):
+    """A row whose preflight memory estimate exceeds the available memory is not
+    compiled: one line with both figures, in the table and the JSON (the default run
+    once died after 12 minutes in XLA's RESOURCE_EXHAUSTED on VTNet at paper widths)."""
+    from orgnav_jax.training import memory
+    tt = load()
+    scenes = tiny_scenes.split_view("train")
+    monkeypatch.setattr(memory, "available_memory", lambda: (10_000_000, "available"))
+    row = tt.time_row("small", "baseline", 16, scenes, 1, None, 1)
+    assert row["skipped"].startswith("skipped: the memory estimate")
+    assert row["estimate_gb"] > row["available_gb"] == 0.0
+    rows = [row, dict(row, model="org")]
+    assert tt.add_baseline_ratios(rows) == []                 # skipped rows get no ratio
+    monkeypatch.setattr(memory, "available_memory", lambda: (10 ** 12, "available"))
+    cfg = tt.row_config("small", None, model="baseline", num_envs=16)
+    assert tt.memory_skip(cfg, scenes) is None
