@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="how often an object with anchors is placed by one (0: anywhere, "
                         "1: always; default 0.85, the generator's): the co-occurrence knob")
     b.add_argument("--perception", nargs="+", metavar="NAME=VALUE",
-                   help="perception knobs over the preset's (docs/benchmark.md), e.g. "
+                   help="perception knobs over the preset's (docs/calibrated.md), e.g. "
                         "global_labels=none global_noise=0.5 confusion=0.2")
     b.add_argument("--json", action="store_true", help="also print the summary as JSON")
     i = sub.add_parser("info", help="summarize a saved benchmark")

@@ -6,7 +6,7 @@ Faster R-CNN's detections; the synthetic benchmark stands in for both with a ray
 (`Perception()`) the stand-ins are as clean as the `small` preset has always had them,
 bit for bit; the `calibrated` preset (presets.py) degrades them towards what the real
 networks deliver, chosen so that the rows without the method (WE, the Baseline) score on
-val what they score in AI2-THOR (docs/benchmark.md, "Perception knobs").
+val what they score in AI2-THOR (docs/calibrated.md).
 
 Knob (default)            what it imitates
 global_labels ("objects")  what a 7x7 ResNet cell says of what it sees: "objects" = the
