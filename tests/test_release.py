@@ -274,20 +274,7 @@ def test_meta_memory_graph_model_loads_its_tpn_head():
     transposed in its Dense, every LayerNorm in its scale and bias (the logits' parity with
     the release's module: experiments/parity_tpn.py, docs/tpn.md); a misshapen head entry
     is one line naming it."""
-    sd = state_dict("GraphModel")
-    rng = np.random.default_rng(5)
-    Hm = 2 * H + 6
-    head = {"meta_current_state_embedding.0": (H // 2, H), "meta_current_state_embedding.1": (H // 2,),
-            "meta_current_state_embedding.3": (H, H // 2), "meta_current_state_embedding.4": (H,),
-            "meta_current_action_embedding": (6, 6),
-            "meta_memory_embedding.0": (2 * H, H + 6), "meta_memory_embedding.1": (2 * H,),
-            "meta_memory_embedding.3": (H + 6, 2 * H), "meta_memory_embedding.4": (H + 6,),
-            "meta_learning_residual_block.0": (H, Hm), "meta_learning_residual_block.1": (H,),
-            "meta_learning_residual_block.3": (Hm, H), "meta_learning_residual_block.4": (Hm,),
-            "meta_learning_predict.0": (H, Hm), "meta_learning_predict.2": (6, H)}
-    for name, shape in head.items():
-        sd[f"{name}.weight"] = rng.standard_normal(shape).astype(np.float32)
-        sd[f"{name}.bias"] = rng.standard_normal(shape[:1]).astype(np.float32)
+    sd, head = meta_memory_state_dict(5), meta_head_shapes()
     net = release.load("MetaMemoryGraphModel", sd)
     p = net.tpn_params["params"]
     for name, ours in release.RELEASE_TPN.items():
@@ -374,12 +361,10 @@ def test_widths_the_model_cannot_take_are_one_line_at_load():
         release._check_model_shapes("GraphModel", net.model, tree, G, D)
 
 
-def meta_memory_state_dict(seed: int = 5) -> dict:
-    """A GraphModel state dict with the MetaMemoryGraphModel's TPN head (random)."""
-    sd = state_dict("GraphModel")
-    rng = np.random.default_rng(seed)
+def meta_head_shapes() -> dict:
+    """The MetaMemoryGraphModel's TPN head entries (without .weight/.bias) -> weight shape."""
     Hm = 2 * H + 6
-    head = {"meta_current_state_embedding.0": (H // 2, H), "meta_current_state_embedding.1": (H // 2,),
+    return {"meta_current_state_embedding.0": (H // 2, H), "meta_current_state_embedding.1": (H // 2,),
             "meta_current_state_embedding.3": (H, H // 2), "meta_current_state_embedding.4": (H,),
             "meta_current_action_embedding": (6, 6),
             "meta_memory_embedding.0": (2 * H, H + 6), "meta_memory_embedding.1": (2 * H,),
@@ -387,7 +372,13 @@ def meta_memory_state_dict(seed: int = 5) -> dict:
             "meta_learning_residual_block.0": (H, Hm), "meta_learning_residual_block.1": (H,),
             "meta_learning_residual_block.3": (Hm, H), "meta_learning_residual_block.4": (Hm,),
             "meta_learning_predict.0": (H, Hm), "meta_learning_predict.2": (6, H)}
-    for name, shape in head.items():
+
+
+def meta_memory_state_dict(seed: int = 5) -> dict:
+    """A GraphModel state dict with the MetaMemoryGraphModel's TPN head (random)."""
+    sd = state_dict("GraphModel")
+    rng = np.random.default_rng(seed)
+    for name, shape in meta_head_shapes().items():
         sd[f"{name}.weight"] = rng.standard_normal(shape).astype(np.float32)
         sd[f"{name}.bias"] = rng.standard_normal(shape[:1]).astype(np.float32)
     return sd
