@@ -467,13 +467,16 @@ def what_was_done(dids: list[str]) -> str:
 def provenance_table(out: Path) -> str:
     """provenance.md: for each group of runs (a row's seeds; ROW/tpn; ROW-pretrain) and
     each distinct record (code, uncommitted changes, device, CPU, jax), the seeds, what
-    the processes did and their dates; runs without records say so. ValueError naming a
+    the processes did and their dates; finished runs without records say so (a run still
+    training, with neither, is left out). ValueError naming a
     provenance.json that cannot be read."""
     spec = read_spec_of(out)
     groups: dict[tuple, dict] = {}
     for run in table_run_dirs(out, spec):
         if not run.is_dir():
             continue                                    # not run yet
+        if not (run / "provenance.json").exists() and not any(run.glob("test*.json")):
+            continue                                    # still training: nothing recorded
         top, *rest = run.relative_to(out / "runs").parts
         match = re.fullmatch(r"(.+)-s(\d+)", top)
         name, seed = (match[1], match[2]) if match else (top, "-")
