@@ -582,3 +582,16 @@ def test_parity_tpn_without_mirror_or_torch_is_one_line_exit_2(tmp_path, cli_err
     if importlib.util.find_spec("torch") is None:        # (with torch the check would run)
         line = cli_error(parity.main, ["--mirror", mirror, "--torch-python", sys.executable])
         assert f"--torch-python {sys.executable}: cannot import torch" in line
+
+
+def test_calibration_table_agrees_with_its_runs():
+    """experiments/results/calibration/calibration.md is what the calibration runs'
+    committed files give (`calibration.py --check`): val results recomputed from their
+    per-episode outcomes, the learning-curve check from metrics.jsonl."""
+    import importlib.util
+    path = EXPERIMENTS / "calibration.py"
+    spec = importlib.util.spec_from_file_location("calibration", path)
+    calibration = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(calibration)
+    assert calibration.main(["--check"]) == 0
+    assert "(chosen)" in (calibration.OUT / "calibration.md").read_text()
