@@ -133,10 +133,10 @@ def read_provenance(path: Path) -> list:
     naming the file otherwise."""
     if not path.exists():
         return []
-    sessions = read_json(path, "a provenance JSON")
-    if not isinstance(sessions, list) or not all(isinstance(x, dict) for x in sessions):
-        raise ValueError(f"{path}: expected a list of session records")
-    return sessions
+    records = read_json(path, "a provenance JSON")
+    if not isinstance(records, list) or not all(isinstance(x, dict) for x in records):
+        raise ValueError(f"{path}: expected a list of provenance records")
+    return records
 
 
 def provenance(top: Path | None = None) -> dict:
@@ -184,12 +184,12 @@ def record_provenance(run_dir: Path, what: str) -> None:
     machine of the process as it started ("code", "uncommitted_changes": what ran),
     and the time of the record."""
     path = run_dir / "provenance.json"
-    sessions = read_provenance(path)
+    records = read_provenance(path)
     run_dir.mkdir(parents=True, exist_ok=True)
     started = _STARTED or provenance()
     record = dict(started, started=started["time"], time=now(), did=what)
     tmp = run_dir / ".provenance.json.tmp"
-    tmp.write_text(json.dumps(sessions + [record], indent=1))
+    tmp.write_text(json.dumps(records + [record], indent=1))
     tmp.replace(path)
 
 
