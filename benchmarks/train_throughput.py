@@ -277,15 +277,13 @@ def time_row(preset: str, model_name: str, num_envs: int, scenes, updates: int,
             "_rollout_len": cfg.rollout_len, "_timed": timed}
 
 
-def memory_skip(cfg, scenes, seeds: int = 1, tpn_cfg=None) -> dict | None:
+def memory_skip(cfg, scenes, seeds: int = 1) -> dict | None:
     """{"skipped": why, "estimate_gb", "available_gb"} when the training preflight's
-    estimate of one chunk (training/memory.py; a TPN chunk with tpn_cfg) times the seeds
+    estimate of one chunk (training/memory.py) times the seeds
     exceeds the machine's available memory, else None: such a row would end in XLA's
     RESOURCE_EXHAUSTED after minutes of compiling, so it is not run."""
     from orgnav_jax.training import memory
-    parts = (memory.chunk_memory_bytes(cfg, scenes) if tpn_cfg is None
-             else memory.tpn_memory_bytes(tpn_cfg, cfg, scenes))
-    need = sum(parts.values()) * seeds
+    need = sum(memory.chunk_memory_bytes(cfg, scenes).values()) * seeds
     have, where = memory.available_memory()
     if have is None or need <= have:
         return None

@@ -116,16 +116,21 @@ def run_random() -> Path:
 
 
 def _val(run_dir: Path) -> dict | None:
+    """The run's val_results.json overall figures, its success checked against the
+    per-episode outcomes, plus release_spl: SPL as the authors' release counts it (the
+    start state in both path lengths: (L_opt + 1) / (max(L, L_opt) + 1)). None if absent."""
     path = run_dir / "val_results.json"
     if not path.exists():
         return None
-    overall = read_json(path, "a results JSON")["overall"]
-    outcome = np.asarray(read_json(path, "a results JSON")["per_episode"]["outcome"])
-    success = float((outcome == 0).mean())
-    if abs(success - overall["success"]) > 1e-9:
+    doc = read_json(path, "a results JSON")
+    overall, pe = doc["overall"], doc["per_episode"]
+    ok = np.asarray(pe["outcome"]) == 0
+    if abs(float(ok.mean()) - overall["success"]) > 1e-9:
         raise ValueError(f"{path}: overall success {overall['success']} differs from its "
-                         f"per-episode outcomes ({success})")
-    return overall
+                         f"per-episode outcomes ({float(ok.mean())})")
+    L, L_opt = np.asarray(pe["path_len"]), np.asarray(pe["optimal_len"])
+    release_spl = float((ok * (L_opt + 1) / (np.maximum(L, L_opt) + 1)).mean())
+    return dict(overall, release_spl=release_spl)
 
 
 def curve_gain(run_dir: Path) -> float | None:
@@ -143,18 +148,6 @@ def curve_gain(run_dir: Path) -> float | None:
     if not last or not before:
         return None
     return 100 * (float(np.mean(last)) - float(np.mean(before)))
-
-
-def release_spl(run_dir: Path) -> float | None:
-    """SPL as the authors' release counts it (the start state in both path lengths:
-    (L_opt + 1) / (max(L, L_opt) + 1)), from the per-episode outcomes on val."""
-    path = run_dir / "val_results.json"
-    if not path.exists():
-        return None
-    pe = read_json(path, "a results JSON")["per_episode"]
-    ok = np.asarray(pe["outcome"]) == 0
-    L, L_opt = np.asarray(pe["path_len"]), np.asarray(pe["optimal_len"])
-    return float((ok * (L_opt + 1) / (np.maximum(L, L_opt) + 1)).mean())
 
 
 def global_part(setting: str) -> str:
@@ -201,7 +194,7 @@ def table_text(out: Path = OUT) -> str:
         if base is None and (we is None or global_part(name) != name):
             continue
         gain = curve_gain(runs / f"baseline-{name}") if base is not None else None
-        spl = release_spl(runs / f"baseline-{name}")
+        spl = None if base is None else base["release_spl"]
         text = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
                          for k, v in knobs.items())
         lines.append(f"| {name}{' (chosen)' if name == CHOSEN else ''} | {text} | {_cell(random, 'random')} | {_cell(we, 'we')} | "

@@ -58,10 +58,9 @@ def room_detections(room: Room, seed: int, cells: np.ndarray, poses: np.ndarray,
     det_rng = np.random.default_rng([seed, room.floorplan, 1])
     det_box, det_conf, code = detector.detect(det_rng, seen, dist, boxes, room.obj_category,
                                               perception)
-    if perception.confusion > 0 or perception.box_jitter > 0:   # a stream of their own:
-        knob_rng = np.random.default_rng([seed, room.floorplan, 3])  # the rest unchanged
-        det_box, det_conf, code = degrade_detections(det_box, det_conf, code, perception,
-                                                     knob_rng)
+    # confusions and jitter draw from a stream of their own: the detector's is unchanged
+    det_box, det_conf, code = degrade_detections(
+        det_box, det_conf, code, perception, np.random.default_rng([seed, room.floorplan, 3]))
     return seen, dist, det_box, det_conf, code
 
 
@@ -77,10 +76,8 @@ def room_arrays(seed: int, floorplan: int, split: str, room: Room | None = None,
     poses = geometry.state_poses(cells)
     seen, dist, det_box, det_conf, app_code = room_detections(room, seed, cells, poses,
                                                               perception)
-    global_feat = global_view.global_codes(room, cells)
-    if perception != Perception():
-        global_feat = degrade_global(global_feat, perception,
-                                     np.random.default_rng([seed, floorplan, 4]))
+    global_feat = degrade_global(global_view.global_codes(room, cells), perception,
+                                 np.random.default_rng([seed, floorplan, 4]))
     present = np.zeros(NUM_CATEGORIES, bool)
     present[room.obj_category] = True
     return RoomArrays(

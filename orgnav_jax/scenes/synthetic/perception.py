@@ -106,7 +106,7 @@ class Perception:
 def parse_knobs(items: list[str] | None) -> dict:
     """["global_noise=0.5", "global_labels=none", ...] -> {name: value}, values typed as
     the Perception fields are; a one-line ValueError names a bad item."""
-    fields = {f.name: f.type for f in dataclasses.fields(Perception)}
+    fields = {f.name for f in dataclasses.fields(Perception)}
     out = {}
     for item in items or ():
         name, sep, value = item.partition("=")
@@ -127,7 +127,10 @@ def degrade_global(codes: np.ndarray, p: Perception, rng: np.random.Generator) -
     """The ray caster's codes (S, 7, 7, 12) of one room -> what `p` lets through.
 
     Channels: 0-4 hit kind one-hot, 5 depth, 6-8 furniture embedding, 9-11 object
-    category embedding (global_view.py). Draws from `rng` only for nonzero noise."""
+    category embedding (global_view.py). Draws from `rng` only for nonzero noise; with
+    the defaults the codes come back as they are."""
+    if (p.global_labels, p.room_style, p.global_noise) == ("objects", 0.0, 0.0):
+        return codes
     out = np.array(codes, np.float32)
     if p.global_labels != "objects":
         out[..., 9:12] = 0.0
@@ -157,7 +160,10 @@ def degrade_detections(det_box: np.ndarray, det_conf: np.ndarray, code: np.ndarr
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Confusions and box jitter on one room's detections (S, C, 4), (S, C), (S, C, Da);
     the other detector knobs act inside detector.detect. A confused detection moves to
-    its partner category's row unless that row holds a more confident detection."""
+    its partner category's row unless that row holds a more confident detection. With
+    neither knob set the arrays come back as they are, and `rng` is not drawn from."""
+    if p.confusion == 0 and p.box_jitter == 0:
+        return det_box, det_conf, code
     det_box, det_conf, code = det_box.copy(), det_conf.copy(), code.copy()
     S, C = det_conf.shape
     if p.confusion > 0:
