@@ -47,12 +47,14 @@ LEVEL = 0.95
 METRIC_NAMES = {"success": "success", "spl": "SPL"}
 
 
-def claims(lr: str, rows: list[str] | None = None) -> list[tuple[str, str, str, int]]:
+def claims(lr: str, spec: dict | None = None) -> list[tuple[str, str, str, int]]:
     """(claim, row, reference row, sign): the claim holds when sign * (row - ref) > 0.
-    With `rows` (a table spec's), the claims of rows added later (later_claims) are listed
+    With `spec` (a table's), the claims of rows added later (later_claims) are listed
     only where the spec has their row, so the claims.md of a table made before them is
-    unchanged; without, all are."""
-    later = [c[:4] for c in later_claims(lr) if rows is None or c[4] in rows]
+    unchanged, and the pre-registered predictions (predicted_claims) follow where the
+    spec's preset has them; without, all later claims and no predictions are."""
+    later = [c[:4] for c in later_claims(lr) if spec is None or c[4] in spec["rows"]]
+    later += predicted_claims(lr, spec)
     tpn = lambda base, v="tpn": f"{base}+{v}@{lr}"
     return [
         # Table 1
@@ -83,7 +85,7 @@ def claims(lr: str, rows: list[str] | None = None) -> list[tuple[str, str, str, 
 
 def later_claims(lr: str) -> list[tuple[str, str, str, int, str]]:
     """Claims added after tables were made, as (claim, row, ref, sign, gate): claims(lr,
-    rows) lists one where the spec has the row `gate`. VTNet (issue 43; Du, Yu, Zheng,
+    spec) lists one where the spec has the row `gate`. VTNet (issue 43; Du, Yu, Zheng,
     ICLR 2021: 72.2 % success against ORG + TPN's 69.3 in its paper, +2.9); its rows
     pre-train on the expert's actions (run_table.py: the budget is stated under table.md).
     D-SP > Baseline (issue 40, the paper's D-SP: the graph concatenated, not replacing the
@@ -99,6 +101,16 @@ def later_claims(lr: str) -> list[tuple[str, str, str, int, str]]:
          "vtnet_scratch", 1, "vtnet"),
         ("VTNet + TPN > VTNet", tpn("vtnet"), "vtnet", 1, tpn("vtnet")),
     ]
+
+
+def predicted_claims(lr: str, spec: dict | None) -> list[tuple[str, str, str, int]]:
+    """The predictions registered for the calibrated benchmark (docs/results.md, "The
+    calibrated table: predictions", commit e68b2c8) that no claim above states: listed
+    for a table on the `calibrated` preset only."""
+    if spec is None or spec["config"].get("scene_preset") != "calibrated":
+        return []
+    return [("full model > Baseline (paper +12.9)", f"org_il+tpn@{lr}", "baseline", 1),
+            ("D-SP > WE", "dsp", "we", 1)]
 
 
 def t_quantile(p: float, df: int) -> float:
@@ -170,11 +182,11 @@ def interval_text(iv) -> str:
 
 
 def claim_rows(results: dict, episodes: dict, lr: str,
-               rows: list[str] | None = None) -> list[dict]:
-    """Every claim's statistics for success and SPL (None where not measured); `rows`:
-    the spec's (claims)."""
+               spec: dict | None = None) -> list[dict]:
+    """Every claim's statistics for success and SPL (None where not measured); `spec`:
+    the table's (claims)."""
     out = []
-    for name, row, ref, sign in claims(lr, rows):
+    for name, row, ref, sign in claims(lr, spec):
         entry = {"claim": name, "row": row, "ref": ref, "sign": sign}
         for metric in METRIC_NAMES:
             d, seeds = paired(results, row, ref, metric)
@@ -204,12 +216,12 @@ def full_model_best(results: dict, lr: str) -> str:
             f"{','.join(sorted(seeds, key=int))}: {gap:+.1f} points against the next row.\n")
 
 
-def table(results: dict, episodes: dict, lr: str, rows: list[str] | None = None) -> str:
-    """claims.md: one line per claim (of the spec's `rows`: claims), success and SPL."""
+def table(results: dict, episodes: dict, lr: str, spec: dict | None = None) -> str:
+    """claims.md: one line per claim (of the table's `spec`: claims), success and SPL."""
     lines = ["| claim | seeds | success diff (points): mean [95% t interval] | bootstrap "
              "interval | p (one-sided) | verdict | SPL diff: mean [95% t interval] | "
              "SPL verdict |", "|---|---|---|---|---|---|---|---|"]
-    for c in claim_rows(results, episodes, lr, rows):
+    for c in claim_rows(results, episodes, lr, spec):
         s, p = c["success"], c["spl"]
         if s is None:
             lines.append(f"| {c['claim']} | not measured | | | | | | |")
@@ -290,12 +302,12 @@ def per_category(out: Path, row: str = "org", ref: str = "baseline") -> str:
     return "\n".join(lines) + "\n"
 
 
-def compact(results: dict, episodes: dict, lr: str, rows: list[str] | None = None) -> str:
+def compact(results: dict, episodes: dict, lr: str, spec: dict | None = None) -> str:
     """The README's claims table: seeds, mean success difference with its 95% t
     interval, and the verdict (measured claims only)."""
     lines = ["| claim | seeds | success difference, points: mean [95% interval] | verdict |",
              "|---|---|---|---|"]
-    for c in claim_rows(results, episodes, lr, rows):
+    for c in claim_rows(results, episodes, lr, spec):
         s = c["success"]
         if s is None:
             continue
@@ -312,7 +324,7 @@ def before_after(out: Path, before: Path) -> str:
     def measured(table_dir: Path) -> dict[str, dict]:
         spec, results, episodes = read_table_dir(table_dir)
         return {c["claim"]: c["success"] for c in
-                claim_rows(results, episodes, lr_tag(spec), spec["rows"])
+                claim_rows(results, episodes, lr_tag(spec), spec)
                 if c["success"] is not None}
     old, new = measured(before), measured(out)
     level = lambda v: v.split(" (")[0]
@@ -514,7 +526,7 @@ def expected_files(out: Path) -> dict[str, str]:
     spec, results, episodes = read_table_dir(out)
     return {"results.json": json.dumps(results, indent=1),
             "table.md": run_table.table_text(results),
-            "claims.md": table(results, episodes, lr_tag(spec), spec["rows"]),
+            "claims.md": table(results, episodes, lr_tag(spec), spec),
             "provenance.md": provenance_table(out)}
 
 
@@ -573,7 +585,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.compact:
         spec, results, episodes = read_table_dir(out)
-        print(compact(results, episodes, lr_tag(spec), spec["rows"]))
+        print(compact(results, episodes, lr_tag(spec), spec))
         return 0
     if args.before:
         print(before_after(out, Path(args.before)), end="")

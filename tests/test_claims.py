@@ -75,6 +75,17 @@ def test_statistics_verdicts_and_intervals(claims):
     assert claims.statistics(np.array([-2.0, -3.0]), -1)["verdict"] == "holds in every seed"
 
 
+def test_predictions_are_claims_of_calibrated_tables_only(claims):
+    spec = lambda preset, rows: {"rows": rows, "config": {"scene_preset": preset}}
+    names = lambda s: [c[0] for c in claims.claims("1e-4", s)]
+    calibrated = names(spec("calibrated", ["baseline", "we", "dsp"]))
+    assert "full model > Baseline (paper +12.9)" in calibrated and "D-SP > WE" in calibrated
+    assert ("org_il+tpn@1e-4", "baseline") in [c[1:3] for c in claims.claims(
+        "1e-4", spec("calibrated", ["baseline"]))]
+    for other in (spec("small", ["baseline", "we", "dsp"]), None):
+        assert not {"full model > Baseline (paper +12.9)", "D-SP > WE"} & set(names(other))
+
+
 def test_claims_table_check_and_tampering(claims, table_dir, capsys):
     assert claims.main([str(table_dir)]) == 0
     text = (table_dir / "claims.md").read_text()
