@@ -70,6 +70,7 @@ from pathlib import Path
 
 import numpy as np
 
+from orgnav_jax.constants import DEFAULT_SCENE_PRESET
 from orgnav_jax import api
 from orgnav_jax.train import PRETRAIN_PIPELINES
 from orgnav_jax.errors import INT32_MAX, is_int, read_json, run_cli, shown
@@ -289,7 +290,7 @@ def run_one(row: str, seed: int, out: Path, overrides: dict) -> dict:
         return read_results_overall(results)
     if row == "random":
         metrics = api.evaluate_policy(
-            "random", "test", overrides.get("scene_preset", "small"),
+            "random", "test", overrides.get("scene_preset", DEFAULT_SCENE_PRESET),
             scenes_dir=overrides.get("scenes_dir"), seed=seed, out=results,
             progress=False)["overall"]
         record_provenance(run_dir, "tested")

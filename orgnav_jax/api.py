@@ -22,7 +22,7 @@ import json
 import sys
 from pathlib import Path
 
-from orgnav_jax.constants import EPISODES_PER_ROOM_TYPE
+from orgnav_jax.constants import DEFAULT_SCENE_PRESET, EPISODES_PER_ROOM_TYPE
 from orgnav_jax.errors import UserError
 from orgnav_jax.safe_write import check_output_file, json_text, write_text_atomic
 from orgnav_jax.training.config import TrainConfig, load_config
@@ -42,7 +42,7 @@ class LoadedPolicy:
     policy: object               # evaluation.Policy
     params: object               # its parameters (None for random / expert)
     name: str                    # for file names and tables
-    scene_preset: str = "small"
+    scene_preset: str = DEFAULT_SCENE_PRESET
     scenes_dir: str | None = None
     scene_seed: int = 0
     batch_size: int = 1000       # episodes per jitted batch
@@ -202,7 +202,8 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
     return result
 
 
-def evaluate_policy(policy: str = "random", split: str = "test", scene_preset: str = "small",
+def evaluate_policy(policy: str = "random", split: str = "test",
+                    scene_preset: str = DEFAULT_SCENE_PRESET,
                     **kw) -> dict:
     """evaluate() of a named policy ('random', 'expert') on a preset or scenes_dir."""
     loaded = dataclasses.replace(load_policy(policy), scene_preset=scene_preset)

@@ -95,3 +95,7 @@ def split_index(name: str) -> int:
 
 # Evaluation episodes per room type in the test protocol (the paper's 250 per room type).
 EPISODES_PER_ROOM_TYPE = 250
+
+# The scene preset every entry point uses when none is named: `small`'s rooms and episodes
+# with AI2-THOR-like perception (docs/calibrated.md); `small` stays available by name.
+DEFAULT_SCENE_PRESET = "calibrated"

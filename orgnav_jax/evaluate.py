@@ -22,7 +22,7 @@ import sys
 
 from orgnav_jax import api, evaluation
 from orgnav_jax.api import is_results_json  # noqa: F401  (the results-file test)
-from orgnav_jax.constants import EPISODES_PER_ROOM_TYPE
+from orgnav_jax.constants import DEFAULT_SCENE_PRESET, EPISODES_PER_ROOM_TYPE
 from orgnav_jax.errors import UserError, run_cli
 from orgnav_jax.safe_write import check_output_file
 
@@ -68,8 +68,9 @@ def parser() -> argparse.ArgumentParser:
                          "MetaMemoryGraphModel evaluates with the test-time updates of its "
                          "TPN head (the TPN options below apply; --tpn-lr 0: none)")
     ap.add_argument("--split", choices=("val", "test"), default="test")
-    ap.add_argument("--scene-preset", "--preset", dest="preset", default="small",
-                    help="scene preset (built once, cached); --preset is the old name")
+    ap.add_argument("--scene-preset", "--preset", dest="preset", default=DEFAULT_SCENE_PRESET,
+                    help=f"scene preset (built once, cached; default {DEFAULT_SCENE_PRESET}); "
+                         "--preset is the old name")
     ap.add_argument("--scenes", metavar="DIR", help="a saved SceneSet directory instead")
     ap.add_argument("--episodes", metavar="FILE", help="replay this episode file")
     ap.add_argument("--episode-seed", type=int, default=0)

@@ -49,7 +49,9 @@ from gymnax.environments import environment, spaces
 from gymnax.wrappers.gym import GymnaxToGymWrapper
 
 from orgnav_jax import env as nav
-from orgnav_jax.constants import DONE, FEATURE_GRID, NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES
+from orgnav_jax.constants import (
+    DEFAULT_SCENE_PRESET, DONE, FEATURE_GRID, NUM_ACTIONS, NUM_CATEGORIES, ROOM_TYPES,
+)
 from orgnav_jax.models.navmodel import model_inputs
 from orgnav_jax.scenes.synthetic.cache import device_split
 from orgnav_jax.scenes.sceneset.sceneset import SceneSet
@@ -303,7 +305,7 @@ def _to_numpy(tree):
     return jax.tree_util.tree_map(np.asarray, tree)
 
 
-def make(scene_preset: str = "small", split: str = "train", obs: str = "flat", *,
+def make(scene_preset: str = DEFAULT_SCENE_PRESET, split: str = "train", obs: str = "flat", *,
          seed: int = 0, scenes_dir: str | None = None, scenes: SceneSet | None = None,
          rules: nav.EnvParams | None = None, max_steps: int | None = None
          ) -> tuple[NavEnv, EnvParams]:

@@ -20,7 +20,7 @@ import json
 import time
 from pathlib import Path
 
-from orgnav_jax.constants import SPLITS
+from orgnav_jax.constants import DEFAULT_SCENE_PRESET, SPLITS
 from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.offline.validate import OfflineFormatError
 from orgnav_jax.scenes.sceneset.fields import FORMAT_VERSION
@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     b = sub.add_parser("build", help="generate a benchmark and save it")
-    b.add_argument("--preset", default="small", help=f"one of {sorted(SCENE_PRESETS)}")
+    b.add_argument("--preset", default=DEFAULT_SCENE_PRESET,
+                   help=f"one of {sorted(SCENE_PRESETS)} (default {DEFAULT_SCENE_PRESET})")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--out", required=True, help="output directory (an existing SceneSet is "
                    "replaced atomically; any other non-empty directory is refused)")

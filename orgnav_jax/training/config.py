@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 from typing import Literal, get_args
 
+from orgnav_jax.constants import DEFAULT_SCENE_PRESET
 from orgnav_jax.training.config_fields import (
     CONFIG_VERSION, COUNT, EPISODE_CAP, FINITE, NON_NEGATIVE, OLD_RENAMES, POSITIVE,
     READABLE_VERSIONS, RUN_RANGES, SEED, Range, add_field_options, budget_notice,
@@ -84,7 +85,7 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     # preset's run_dir is runs/<preset>): updates_per_chunk, eval_every_chunks,
     # eval_episodes_per_room_type, checkpoint_every_chunks, keep_checkpoints, seed, run_dir
     # data
-    scene_preset: str = "small"       # scene preset built and cached (orgnav_jax.scenes)
+    scene_preset: str = DEFAULT_SCENE_PRESET   # scene preset built and cached (orgnav_jax.scenes)
     scenes_dir: str | None = None     # or a saved / imported SceneSet directory
     scene_seed: int = 0
     # model

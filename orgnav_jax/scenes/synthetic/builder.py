@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 from tqdm.auto import tqdm
 
-from orgnav_jax.constants import NUM_CATEGORIES, ROOM_TYPE_INDEX, SPLIT_INDEX
+from orgnav_jax.constants import DEFAULT_SCENE_PRESET, NUM_CATEGORIES, ROOM_TYPE_INDEX, SPLIT_INDEX
 from orgnav_jax.scenes.sceneset import assemble
 from orgnav_jax.scenes.sceneset.fields import FORMAT_INFO
 from orgnav_jax.scenes.sceneset.sceneset import SceneSet
@@ -108,12 +108,13 @@ def stack_rooms(rooms: list[RoomArrays], **extra) -> SceneSet:
     return assemble.assemble([r.room() for r in rooms], **extra)
 
 
-def build(preset: str | ScenePreset = "small", seed: int = 0, *, progress: bool = False,
-          **overrides) -> SceneSet:
+def build(preset: str | ScenePreset = DEFAULT_SCENE_PRESET, seed: int = 0, *,
+          progress: bool = False, **overrides) -> SceneSet:
     """Generate the synthetic benchmark: a SceneSet of numpy arrays.
 
-    preset: 'small', 'paper', 'tiny' or a ScenePreset; overrides replace preset fields
-    (e.g. rooms_per_type=(4, 1, 1)). The same (preset, seed) gives identical arrays.
+    preset: a name of SCENE_PRESETS (default constants.DEFAULT_SCENE_PRESET) or a
+    ScenePreset; overrides replace preset fields (e.g. rooms_per_type=(4, 1, 1)). The
+    same (preset, seed) gives identical arrays.
     A raw preset ('large') is refused: it is written to disk by scenes.build_to; with
     raw=False it is built here with codes and bases like the others.
     """

@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from orgnav_jax.constants import DEFAULT_SCENE_PRESET
 from orgnav_jax.scenes.synthetic.builder import build
 from orgnav_jax.scenes.sceneset.fields import FORMAT_VERSION
 from orgnav_jax.scenes.synthetic.presets import get_preset
@@ -32,8 +33,9 @@ def cache_path(preset: str, seed: int, cache_dir: str | os.PathLike | None = Non
     return Path(cache_dir or default_cache_dir()) / f"scenes-{preset}-seed{seed}-v{FORMAT_VERSION}"
 
 
-def load_or_build(preset: str = "small", seed: int = 0, cache_dir: str | os.PathLike | None = None,
-                  progress: bool = True, mmap: bool = False) -> SceneSet:
+def load_or_build(preset: str = DEFAULT_SCENE_PRESET, seed: int = 0,
+                  cache_dir: str | os.PathLike | None = None, progress: bool = True,
+                  mmap: bool = False) -> SceneSet:
     """The cached SceneSet for (preset, seed), built and saved on first use (memory-mapped
     when mmap=True and it was already on disk). Raw presets ('large', gigabytes) are never
     built here: build them with --out and load that."""
@@ -64,7 +66,8 @@ def _identity(path: Path) -> tuple:
         return (str(path),)
 
 
-def load_scenes(preset: str = "small", seed: int = 0, scenes_dir: str | None = None) -> SceneSet:
+def load_scenes(preset: str = DEFAULT_SCENE_PRESET, seed: int = 0,
+                scenes_dir: str | None = None) -> SceneSet:
     """A saved SceneSet directory, else the cached preset, memory-mapped (split views of it
     read only their own rooms). The last one loaded is kept, so that loading a model and
     evaluating it in one process reads the set once; a set replaced on disk is reloaded."""
@@ -82,7 +85,7 @@ def load_scenes(preset: str = "small", seed: int = 0, scenes_dir: str | None = N
     return _LOADED["scenes"]
 
 
-def device_split(preset: str = "small", seed: int = 0, scenes_dir: str | None = None,
+def device_split(preset: str = DEFAULT_SCENE_PRESET, seed: int = 0, scenes_dir: str | None = None,
                  split: str = "train") -> SceneSet:
     """load_scenes(...).split_view(split).to_device(), kept with the loaded set: one
     device copy per split in a process (training, its val evaluation and a later
