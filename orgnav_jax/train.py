@@ -1,6 +1,6 @@
 """Train a navigation agent: `python -m orgnav_jax.train`.
 
-    python -m orgnav_jax.train                               # baseline, small benchmark
+    python -m orgnav_jax.train                               # baseline, calibrated benchmark
     python -m orgnav_jax.train --preset small --model we --run-dir runs/we
     python -m orgnav_jax.train --run-dir runs/small --resume
     python -m orgnav_jax.train --stage tpn --base runs/small   # stage 2: TPN
@@ -8,10 +8,10 @@
     python -m orgnav_jax.train --preset vtnet     # VTNet: pre-training, then A2C from it
     python -m orgnav_jax.train --stage pretrain --preset vtnet --run-dir runs/vt-pre
 
-With no arguments it builds (or reuses) the small synthetic benchmark, trains the
-Baseline for the default budget, evaluates the best-on-val checkpoint on the test split
-(250 episodes per room type) and prints the Table-1-style row. Every TrainConfig field is
-an option; see --help.
+With no arguments it builds (or reuses) the calibrated benchmark (the default scene
+preset), trains the Baseline for the default budget, evaluates the best-on-val checkpoint
+on the test split (250 episodes per room type) and prints the Table-1-style row. Every
+TrainConfig field is an option; see --help.
 
 `--preset vtnet` pre-trains VTNet's visual transformer on the expert's actions (a run in
 RUN_DIR-pretrain; per seed RUN_DIR-pretrain-sS), then trains it by A2C from the result

@@ -309,7 +309,7 @@ TRAIN_PRESETS: dict[str, dict] = {
     "tiny": dict(scene_preset="tiny", total_env_steps=400_000, updates_per_chunk=10,
                  eval_every_chunks=8, run_dir="runs/tiny"),
 }
-# The rows of the paper's Tables 1 and 2, on the small benchmark (model x imitation).
+# The rows of the paper's Tables 1 and 2 (model x imitation), on the default scene preset.
 # Both SAVN rows: one LSTM layer as SAVN's release, inner lr 1e-3 chosen on val at 5 M
 # real steps (the release's 1e-4 stays the field's default;
 # experiments/results/val_choices/savn.md, docs/savn.md)
@@ -333,7 +333,7 @@ TABLE_ROWS: dict[str, dict] = {
 TABLE_DROPOUT = 0.0
 TRAIN_PRESETS.update({name: dict(row, dropout=TABLE_DROPOUT, run_dir=f"runs/{name}")
                 for name, row in TABLE_ROWS.items()})
-# VTNet (issue 43; docs/vtnet.md), on the small benchmark with the rows' settings: the
+# VTNet (issue 43; docs/vtnet.md), with the rows' settings: the
 # release trains it by A3C alone (no IL). `--preset vtnet` pre-trains it first (a run in
 # RUN_DIR-pretrain: train.py), then trains from it; vtnet_scratch has no pre-training.
 # (Not TABLE_ROWS: experiments/run_table.py adds them as rows, `vtnet` with its
