@@ -198,3 +198,20 @@ def test_calibrated_preset_is_the_chosen_calibration_setting():
     assert preset.perception.changed() == calibration.SETTINGS[calibration.CHOSEN]
     small = get_preset("small")
     assert dataclasses.replace(preset, name="small", perception=Perception()) == small
+
+
+def test_every_entry_point_defaults_to_the_calibrated_preset():
+    """One default scene preset (constants.DEFAULT_SCENE_PRESET) behind the trainer, the
+    evaluator, the scenes CLI, the gymnax env and the API."""
+    import inspect
+    from orgnav_jax import api, evaluate, gymnax_env, scenes
+    from orgnav_jax.constants import DEFAULT_SCENE_PRESET
+    from orgnav_jax.training.config import get_config
+    assert DEFAULT_SCENE_PRESET == "calibrated"
+    defaults = [get_config().scene_preset, evaluate.parser().get_default("preset"),
+                api.LoadedPolicy(None, None, "x").scene_preset]
+    defaults += [inspect.signature(f).parameters[name].default for f, name in (
+        (api.evaluate_policy, "scene_preset"), (gymnax_env.make, "scene_preset"),
+        (scenes.build, "preset"), (scenes.load_or_build, "preset"),
+        (scenes.load_scenes, "preset"), (scenes.device_split, "preset"))]
+    assert defaults == [DEFAULT_SCENE_PRESET] * len(defaults)
