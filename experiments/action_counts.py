@@ -26,13 +26,15 @@ from orgnav_jax.scenes.synthetic.cache import device_split
 def action_counts(run_dir: str | Path, split: str = "test") -> dict:
     """A run's greedy policy on the split's seeded episodes -> {"episodes", "successes",
     "optimal", "path" (means over successful episodes), ACTION name: mean count per
-    successful episode}."""
+    successful episode}. ValueError when no episode succeeds."""
     loaded = api.load_run(run_dir)
     scenes = device_split(loaded.scene_preset, loaded.scene_seed, loaded.scenes_dir, split)
     episodes = sample_episodes(scenes, EPISODES_PER_ROOM_TYPE, seed=0, split=split)
     trace = evaluation.trace_episodes(loaded.policy, loaded.params, scenes, episodes,
                                       env.EnvParams.evaluation())
     success = np.asarray(trace["success"]).reshape(-1).astype(bool)
+    if not success.any():
+        raise ValueError(f"{run_dir}: no successful {split} episode to count actions in")
     running = np.asarray(trace["running"])[success]              # (n, T) steps taken
     actions = np.asarray(trace["action"])[success]
     out = {"episodes": int(success.size), "successes": int(success.sum()),
