@@ -5,8 +5,8 @@
 For each run directory (its best-on-val checkpoint, which stays out of git: run it where
 the runs were trained), the policy acts as in evaluation (greedily; a SAVN run as its
 savn_act says, with its own sampling seed) on the split's seeded episode set (250 per room
-type); the table has the successful episodes, their mean
-optimal and taken path lengths, and the mean count of each action per successful episode.
+type); the table has the successful episodes, their mean optimal and taken path lengths,
+and the mean count of each action per successful episode.
 """
 
 from __future__ import annotations
