@@ -4,7 +4,19 @@ run every trainer test uses, and the trained-vs-random check of the learning tes
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
+
 CHUNK = 16 * 8 * 2          # env steps per chunk of small runs
+EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+
+
+def experiment_script(name: str):
+    """experiments/<name>.py loaded as a module (the scripts are not a package)."""
+    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def small_options(scenes_dir, run_dir, **kw) -> dict:

@@ -10,17 +10,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+from helpers import EXPERIMENTS, experiment_script
 
 
 @pytest.fixture(scope="module")
 def claims():
     sys.path.insert(0, str(EXPERIMENTS))
-    spec = importlib.util.spec_from_file_location("claims", EXPERIMENTS / "claims.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return experiment_script("claims")
 
 
 def fake_results(success: np.ndarray, rng) -> dict:
@@ -258,9 +254,7 @@ def test_the_knob_tables_agree_with_their_runs(claims, tmp_path):
     """experiments/knob.py --check: knob.md is what the knob's runs give (success from
     their test results, adjacency from the matrices in their adjacency.json); a tampered
     matrix is named."""
-    spec = importlib.util.spec_from_file_location("knob", EXPERIMENTS / "knob.py")
-    knob = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(knob)
+    knob = experiment_script("knob")
     assert knob.main(["--check"]) == 0
     rows = knob.point_rows()
     measured = [r for r in rows if r["stats"]]
@@ -281,9 +275,7 @@ def test_the_knob_tables_agree_with_their_runs(claims, tmp_path):
 def test_tpn_budget_gain_is_paired_by_episode_and_tabled(tmp_path):
     """experiments/tpn_budget.py: the gain over the base alone is the mean per-episode
     success difference with its normal 95% interval; the table shows the chosen lr."""
-    spec = importlib.util.spec_from_file_location("tpn_budget", EXPERIMENTS / "tpn_budget.py")
-    budget = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(budget)
+    budget = experiment_script("tpn_budget")
     rng = np.random.default_rng(0)
     alone = rng.random(400) < 0.6
     better = alone | (rng.random(400) < 0.2)             # never worse, sometimes better
@@ -312,9 +304,7 @@ def test_the_20m_comparison_agrees_with_its_runs(tmp_path):
     """experiments/budget_20m.py --check: budget.md is what the 5 M and 20 M runs' files
     give; the curve points are the first val record at or after each budget, so a changed
     val record at 20 M changes the table."""
-    spec = importlib.util.spec_from_file_location("budget_20m", EXPERIMENTS / "budget_20m.py")
-    budget = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(budget)
+    budget = experiment_script("budget_20m")
     assert (budget.SHORT, budget.LONG) == tuple(
         EXPERIMENTS / "results" / "before_parity" / t for t in ("table_5m", "table_20m"))
     assert budget.main(["--check"]) == 0
@@ -459,12 +449,6 @@ def test_val_sweep_pretrains_a_vtnet_variant_first_and_reads_a_finished_run(
 
 # ---- issue 55 (bad input, round four): the sweep scripts and the TPN parity check ------
 
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
 
 def _fake_evaluations(monkeypatch, calls: list):
     """api.evaluate_run recorded and faked (no evaluation runs): it writes a results
@@ -488,7 +472,7 @@ def test_tpn_lr_sweep_checks_its_run_outputs_and_what_it_resumes(tmp_path, monke
     the record at --out holds for the same run, split and scope."""
     from orgnav_jax.tpn.config import get_tpn_config
     from orgnav_jax.training.config import get_config
-    sweep = _script("tpn_lr_sweep")
+    sweep = experiment_script("tpn_lr_sweep")
     calls = []
     _fake_evaluations(monkeypatch, calls)
     tpn = tmp_path / "base" / "tpn"
@@ -543,7 +527,7 @@ def test_savn_act_sweep_refuses_a_users_file_before_any_evaluation(tmp_path, mon
     run, --out and each results file are checked first (one line, exit 2, nothing
     evaluated or written); its own record is replaced."""
     from orgnav_jax.training.config import get_config
-    sweep = _script("savn_act_sweep")
+    sweep = experiment_script("savn_act_sweep")
     calls = []
     _fake_evaluations(monkeypatch, calls)
     runs = []
@@ -580,7 +564,7 @@ def test_savn_act_sweep_refuses_a_users_file_before_any_evaluation(tmp_path, mon
 def test_parity_tpn_without_mirror_or_torch_is_one_line_exit_2(tmp_path, cli_error):
     """parity_tpn.py exited 1 on a missing mirror and ended in a traceback on a missing
     --torch-python: one line, exit 2, before anything runs."""
-    parity = _script("parity_tpn")
+    parity = experiment_script("parity_tpn")
     line = cli_error(parity.main, ["--mirror", tmp_path / "none"])
     assert f"--mirror {tmp_path / 'none'}: no git mirror of the release there" in line
     import subprocess
@@ -599,10 +583,6 @@ def test_calibration_table_agrees_with_its_runs():
     """experiments/results/calibration/calibration.md is what the calibration runs'
     committed files give (`calibration.py --check`): val results recomputed from their
     per-episode outcomes, the learning-curve check from metrics.jsonl."""
-    import importlib.util
-    path = EXPERIMENTS / "calibration.py"
-    spec = importlib.util.spec_from_file_location("calibration", path)
-    calibration = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(calibration)
+    calibration = experiment_script("calibration")
     assert calibration.main(["--check"]) == 0
     assert "(chosen)" in (calibration.OUT / "calibration.md").read_text()

@@ -237,12 +237,8 @@ def test_failure_shares_sum_to_one_in_every_summary(test_split, test_episodes):
 
 
 def test_run_table_shows_failure_columns_and_dashes_for_old_results(tmp_path):
-    import importlib.util
-    from pathlib import Path
-    path = Path(__file__).parents[1] / "experiments" / "run_table.py"
-    spec = importlib.util.spec_from_file_location("run_table", path)
-    run_table = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(run_table)
+    from helpers import experiment_script
+    run_table = experiment_script("run_table")
     base = {"success": 0.4, "spl": 0.2, "success_L5": 0.3, "spl_L5": 0.1}
     new = {**base, "wrong_done": 0.25, "timeout": 0.35, "revisits": 3.0, "failed_moves": 1.5}
     new2 = {**new, "wrong_done": 0.35, "timeout": 0.25, "revisits": 5.0}

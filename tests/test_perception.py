@@ -188,12 +188,8 @@ def test_knobs_recorded_in_the_set_info():
 
 
 def test_calibrated_preset_is_the_chosen_calibration_setting():
-    import importlib.util
-    from pathlib import Path
-    path = Path(__file__).resolve().parents[1] / "experiments" / "calibration.py"
-    spec = importlib.util.spec_from_file_location("calibration", path)
-    calibration = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(calibration)
+    from helpers import experiment_script
+    calibration = experiment_script("calibration")
     preset = get_preset("calibrated")
     assert preset.perception.changed() == calibration.SETTINGS[calibration.CHOSEN]
     small = get_preset("small")

@@ -142,12 +142,8 @@ def test_curves_cli_bad_inputs_are_one_line_errors(tmp_path, capsys, case, messa
 
 
 def test_run_table_writes_curves_of_non_tpn_rows_and_never_fails(tmp_path, capsys):
-    import importlib.util
-    from pathlib import Path
-    path = Path(__file__).parents[1] / "experiments" / "run_table.py"
-    spec = importlib.util.spec_from_file_location("run_table", path)
-    run_table = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(run_table)
+    from helpers import experiment_script
+    run_table = experiment_script("run_table")
     results = {"baseline": {"0": {}, "1": {}}, "baseline+tpn": {"0": {}}, "il": {"0": {}}}
     assert run_table.write_curves(tmp_path, results) is None     # no metrics.jsonl yet
     for name in ("baseline-s0", "baseline-s1"):
