@@ -25,6 +25,7 @@ from pathlib import Path
 from orgnav_jax.constants import DEFAULT_SCENE_PRESET, EPISODES_PER_ROOM_TYPE
 from orgnav_jax.errors import UserError
 from orgnav_jax.safe_write import check_output_file, json_text, write_text_atomic
+from orgnav_jax.tables.convergence import check_stop_rule, stop_when_converged
 from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.training.run_dir import is_run_dir
 
@@ -243,12 +244,31 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
     return train_navigation(cfg, resume=resume, progress=progress)
 
 
-def train_seeds(cfg: TrainConfig, seeds, resume: bool = False,
-                progress: bool = True) -> list[dict]:
+def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = True,
+                until_converged: bool = False) -> list[dict]:
     """Stage 1 for several seeds of cfg in one program (a vmapped population axis), seed
-    S in <cfg.run_dir>-sS -> one summary per seed (training/loop.py: train_seeds)."""
+    S in <cfg.run_dir>-sS -> one summary per seed (training/loop.py: train_seeds).
+    until_converged: stop at the first val evaluation where the convergence rule holds
+    (tables/convergence.py; cfg.total_env_steps is then the cap; each summary's
+    'stopped' says why it stopped early, None at the cap)."""
     from orgnav_jax.training.loop import train_seeds as train_population
-    return train_population(cfg, seeds, resume=resume, progress=progress)
+    stop = None
+    if until_converged:
+        check_until_converged(cfg, seeds)
+        stop = stop_when_converged()
+    return train_population(cfg, seeds, resume=resume, progress=progress, stop=stop)
+
+
+def check_until_converged(cfg: TrainConfig, seeds) -> None:
+    """UserError (one line) when the convergence rule cannot judge training cfg with
+    these seeds (tables/convergence.py: check_stop_rule; SAVN trains one seed a program)."""
+    try:
+        check_stop_rule(list(seeds), cfg.eval_episodes_per_room_type)
+    except ValueError as err:
+        raise UserError(str(err)) from None
+    if cfg.savn:
+        raise UserError("--until-converged: SAVN runs train one seed per program "
+                        "(docs/savn.md); the rule judges seeds trained together")
 
 
 def pretrain(cfg, resume: bool = False, progress: bool = True) -> dict:

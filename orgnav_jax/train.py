@@ -109,6 +109,10 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--seeds", type=int, nargs="+", default=None, metavar="SEED",
                     help="train these seeds of the config in one program (a vmapped "
                          "population axis), seed S in RUN_DIR-sS (instead of --seed)")
+    ap.add_argument("--until-converged", action="store_true",
+                    help="with --seeds (2 or more) and --eval-episodes-per-room-type 250: "
+                         "stop at the first val evaluation where the convergence rule "
+                         "holds (docs/results.md); --total-env-steps is then the cap")
     add_config_arguments(ap)
     return ap
 
@@ -284,6 +288,10 @@ def main(argv: list[str] | None = None) -> dict:
     if which == "tpn":
         return main_tpn(argv)
     args = parser().parse_args(argv)
+    if args.until_converged and (which == "pretrain" or args.seeds is None or
+                                 args.preset in PRETRAIN_PIPELINES):
+        raise UserError("--until-converged goes with stage-1 training of --seeds S1 S2 ... "
+                        "in one program (not pre-training)")
     if which == "pretrain":
         return main_pretrain(args)
     if args.preset in PRETRAIN_PIPELINES and "pretrained" not in overrides_from_args(args):
@@ -291,6 +299,8 @@ def main(argv: list[str] | None = None) -> dict:
     pipeline = TPN_PIPELINES.get(args.preset)
     tpn_fields = pipeline_tpn_fields(args) if pipeline else {}      # before any work
     cfg = nav_config(args, processes=start_processes(args))
+    if args.until_converged:
+        api.check_until_converged(cfg, args.seeds)
     seeds = f", seeds {' '.join(map(str, args.seeds))} in one program" if args.seeds else ""
     shape = (f"SAVN, {cfg.num_envs} rows x {cfg.savn_segments} segments x {cfg.savn_steps} "
              "steps" if cfg.savn else f"{cfg.num_envs} envs x {cfg.rollout_len} steps")
@@ -299,7 +309,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.budget and primary():
         print(BUDGETS[args.budget].describe(), file=sys.stderr, flush=True)
     if args.seeds is not None:
-        runs = api.train_seeds(cfg, args.seeds, resume=args.resume, progress=not args.quiet)
+        runs = api.train_seeds(cfg, args.seeds, resume=args.resume, progress=not args.quiet,
+                               until_converged=args.until_converged)
         summaries = [finish(s, s["run_dir"], args) for s in runs]
     else:
         summaries = [finish(api.train(cfg, resume=args.resume, progress=not args.quiet),

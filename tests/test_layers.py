@@ -25,6 +25,7 @@ LAYERS = (
     ("evaluation",),
     ("training",),
     ("tpn",),
+    ("tables",),         # run layout, statistics, convergence rule: what tables are made of
     ("api", "plots"),
     ("train", "evaluate", "scenes.cli", "scenes.__main__"),   # the command lines
 )

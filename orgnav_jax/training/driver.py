@@ -45,6 +45,11 @@ from orgnav_jax.training.run_dir import METRICS_FILE, MetricsLog, read_metrics, 
 from orgnav_jax.training.scale import is_primary
 
 
+# A stop criterion: each run's val records so far (in step order) -> a one-line reason to
+# end the stage now, or None (tables/convergence.py: stop_when_converged)
+StopRule = Callable[[list[list[dict]]], "str | None"]
+
+
 class NonFiniteLoss(UserError, RuntimeError):
     """The loss became NaN or infinite; the last good checkpoint is kept."""
 
@@ -93,12 +98,13 @@ class Stage:
 
 
 def run_stage(stage: Stage, runner, cfg, run_dir: Path, resume: bool, progress: bool = True,
-              stop_after_chunks: int | None = None) -> dict:
+              stop_after_chunks: int | None = None, stop: StopRule | None = None) -> dict:
     """Run (or resume) `stage` from `runner` in the open run directory -> summary dict:
     run_dir, chunks, the step count under stage.step_name, best_val, compile and wall
-    time, and the final runner. stop_after_chunks ends early (tests of kill-and-resume)."""
+    time, `stopped` (the stop rule's reason, or None) and the final runner.
+    stop_after_chunks ends early (tests of kill-and-resume); `stop` see run_population."""
     return run_population(stage, [runner], [cfg], [Path(run_dir)], resume, progress,
-                          stop_after_chunks, stacked=False)[0]
+                          stop_after_chunks, stacked=False, stop=stop)[0]
 
 
 @dataclasses.dataclass
@@ -224,22 +230,30 @@ def wall_time_estimate(stage: Stage, chunk: int, seconds: list[float], members: 
 
 def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path],
                    resume: bool, progress: bool = True, stop_after_chunks: int | None = None,
-                   stacked: bool = True) -> list[dict]:
+                   stacked: bool = True, stop: StopRule | None = None) -> list[dict]:
     """Run (or resume) several runs of `stage` in one program -> one summary per run (see
     run_stage). With stacked=True the runners are stacked on a leading axis and
     stage.chunk/stage.place take the stack (metrics then have that axis); stage.validate
-    takes one member's runner. The callers hold the run directories open."""
+    takes one member's runner. `stop`, after each val evaluation, gets every run's val
+    records so far (a resume's earlier ones included): a reason ends the stage there,
+    with a checkpoint, so that a later --resume with a larger budget continues it. The
+    callers hold the run directories open."""
     primary = is_primary()
     if stage.steps_key is not None and (stacked or len(runners) != 1):
         raise ValueError(f"{stage.name}: a stage counting varying steps runs one run")
     members = [_Member(cfg, Path(d), RunCheckpoints(d, cfg.keep_checkpoints),
                        {k: -1.0 for k in stage.score_keys}) for cfg, d in zip(cfgs, run_dirs)]
+    logged = [[] for _ in members]
     if resume:        # a malformed log is refused before anything is written
-        for m in members:
+        for m, records in zip(members, logged):
             if (m.run_dir / METRICS_FILE).exists():
-                read_metrics(m.run_dir, stage.step_name, skip_broken=True)
+                records += read_metrics(m.run_dir, stage.step_name, skip_broken=True)
     chunk, steps, runners = (_restore(members, runners, stacked, stage) if resume
                              else (0, 0, runners))
+    # each run's val records up to the resumed step (the stop rule's history)
+    history = [[r for r in records if r["kind"] == "val" and r[stage.step_name] <= steps]
+               for records in logged]
+    stopped = None
     for m in members:      # after the restore: a failed resume changes nothing
         if primary:
             write_config(m.run_dir, m.cfg)
@@ -299,12 +313,18 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
                 for i, m in enumerate(members):
                     mine = member_runner(i)
                     val = stage.validate(mine)
+                    history[i].append({"kind": "val", stage.step_name: step, **val})
                     if m.log:
                         m.log.write("val", step, val)
                     if stage.score(val) > stage.score(m.best):
                         m.best = {**{k: val[k] for k in stage.best_keys},
                                   stage.step_name: step}
                         m.ckpt.save(step, mine, {"chunk": chunk, "val": val}, best=True)
+                stopped = stop(history) if stop is not None else None
+                if stopped and primary:
+                    bar.write(f"{stage.name}: stopped at {steps:,} {stage.unit}s, {stopped}",
+                              file=sys.stderr)
+                last = last or bool(stopped)
             # after this chunk's val evaluation, so the bar shows the last best_val
             bar.set_postfix(rate=f"{took * len(members) / dt:.0f}/s",
                             **{k: f"{np.mean(v):.3f}" for k, v in recent.items()},
@@ -312,7 +332,8 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
             if chunk % cfgs[0].checkpoint_every_chunks == 0 or last:
                 for i, m in enumerate(members):
                     m.ckpt.save(step, member_runner(i), {"chunk": chunk, "best": m.best})
-            if stop_after_chunks is not None and chunk >= stop_after_chunks and not last:
+            if (stop_after_chunks is not None and chunk >= stop_after_chunks and not last) or \
+                    stopped:
                 break
     finally:
         bar.close()
@@ -322,4 +343,5 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
     wall = time.perf_counter() - t_start
     return [{"run_dir": str(m.run_dir), stage.step_name: steps,
              "chunks": chunk, "best_val": m.best, "compile_plus_first_chunk_s": compile_s,
-             "wall_s": wall, "runner": member_runner(i)} for i, m in enumerate(members)]
+             "wall_s": wall, "stopped": stopped, "runner": member_runner(i)}
+            for i, m in enumerate(members)]

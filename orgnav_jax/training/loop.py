@@ -31,7 +31,7 @@ from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.errors import UserError
 from orgnav_jax.training import savn, scale
 from orgnav_jax.training.driver import (
-    Stage, run_population, run_stage)
+    Stage, StopRule, run_population, run_stage)
 from orgnav_jax.training.runs import (
     device_splits, keep_word_vectors, model_policy, preflight)
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
@@ -196,11 +196,14 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
 
 
 def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = True,
-                stop_after_chunks: int | None = None) -> list[dict]:
+                stop_after_chunks: int | None = None,
+                stop: StopRule | None = None) -> list[dict]:
     """Train (or resume) cfg with each of `seeds` in one program (a vmapped population
     axis), seed s in seed_run_dir(cfg.run_dir, s) -> one summary per seed. One seed is
     an ordinary run (in its -s<seed> directory). A VTNet starting from pre-training
-    (cfg.pretrained) starts seed s from seed_run_dir(cfg.pretrained, s)."""
+    (cfg.pretrained) starts seed s from seed_run_dir(cfg.pretrained, s). `stop`: a stop
+    criterion on the seeds' val records (training/driver.py: run_population); the budget
+    is then the cap."""
     seeds = [int(s) for s in seeds]
     if not seeds or len(set(seeds)) != len(seeds):
         raise UserError(f"--seeds {' '.join(map(str, seeds))}: expected distinct seeds")
@@ -225,12 +228,12 @@ def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = 
                                                                   load_config))
                     for c in cfgs]
         return _train(cfgs, scenes, run_dirs, mesh, resume, progress, stop_after_chunks,
-                      population=True)
+                      population=True, stop=stop)
 
 
 def _train(cfgs: list[TrainConfig], scenes, run_dirs: list[Path], mesh, resume: bool,
            progress: bool, stop_after_chunks: int | None,
-           population: bool = False) -> list[dict]:
+           population: bool = False, stop: StopRule | None = None) -> list[dict]:
     cfg = cfgs[0]
     # the train and val splits of the set preflight loaded, on the device; the test rooms
     # of the memory-mapped set are never read
@@ -267,6 +270,6 @@ def _train(cfgs: list[TrainConfig], scenes, run_dirs: list[Path], mesh, resume: 
         progress_keys=("success",), place=place)
     if population:
         return run_population(stage, runners, cfgs, run_dirs, resume, progress,
-                              stop_after_chunks)
+                              stop_after_chunks, stop=stop)
     return [run_stage(stage, runners[0], cfg, run_dirs[0], resume, progress,
                       stop_after_chunks)]

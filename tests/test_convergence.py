@@ -1,0 +1,162 @@
+"""The convergence rule (orgnav_jax/tables/convergence.py) on synthetic val curves
+(flat, rising, noisy, falling), its reading of metrics.jsonl, the trainer's stop
+criterion on a stand-in stage (no network, no compile), and --until-converged's bad
+values. None of these is a learning test."""
+
+from __future__ import annotations
+
+import json
+
+import flax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from orgnav_jax.tables import convergence as cv
+from orgnav_jax.training.config import get_config
+from orgnav_jax.training.driver import Stage, run_population
+
+STEP = 204_800
+
+
+def curve(*success_per_seed, episodes: int = 1000) -> cv.SeedMeanCurve:
+    """Seed curves of val success (fractions), evaluated every STEP env steps."""
+    runs = [cv.ValCurve(f"seed {i}", STEP * np.arange(1, len(s) + 1), np.asarray(s, float),
+                        np.full(len(s), episodes)) for i, s in enumerate(success_per_seed)]
+    return cv.seed_mean_curve(runs)
+
+
+def test_a_flat_curve_has_converged_and_a_rising_one_has_not():
+    flat = np.full(40, 0.60)
+    v = cv.judge(curve(flat, flat))
+    assert v.converged and v.change == pytest.approx(0.0) and v.env_steps == 40 * STEP
+    rising = np.linspace(0.10, 0.60, 40)          # +0.5 points an evaluation
+    r = cv.judge(curve(rising, rising))
+    # quarters of 10 evaluations, 50/39 points apart each: 12.8 points apart
+    assert not r.converged and r.change == pytest.approx(100 * 0.5 / 39 * 10)
+    assert "beyond 1" in r.why
+
+
+def test_the_rule_judges_the_seed_mean_and_its_quarters():
+    """Two seeds rising in opposite directions average to flat: converged; the quarters
+    are the last n // 4 evaluations against the n // 4 before them."""
+    up, down = np.linspace(0.4, 0.6, 40), np.linspace(0.6, 0.4, 40)
+    assert cv.judge(curve(up, down)).converged
+    s = np.r_[np.full(22, 0.50), np.full(8, 0.52), np.full(10, 0.535)]   # n=40, q=10
+    v = cv.judge(curve(s, s))
+    assert v.quarter_before == pytest.approx((2 * 50 + 8 * 52) / 10)
+    assert v.last_quarter == pytest.approx(53.5)
+    assert not v.converged and v.change == pytest.approx(1.9)
+
+
+def test_a_noisy_plateau_converges_and_a_late_rise_is_seen():
+    rng = np.random.default_rng(0)
+    steps = 100
+    base = np.minimum(np.linspace(0.05, 1.5, steps), 0.58)   # rises, then a plateau at 58
+    # from evaluation 37 on
+    seeds = [np.clip(base + rng.normal(0, 0.015, steps), 0, 1) for _ in range(2)]
+    c = curve(*seeds)
+    first = cv.converged_at(c)
+    assert first is not None and first.converged
+    # the rule needs its last two quarters (nearly) on the plateau
+    assert 55 < first.evaluations <= steps and first.env_steps == first.evaluations * STEP
+    assert not cv.judge(c, upto=50).converged       # half of it still rising
+    late = [np.r_[s[:80], s[80:] + 0.05] for s in seeds]   # +5 points in the last 20
+    assert not cv.judge(curve(*late)).converged
+
+
+def test_a_falling_curve_has_not_converged_and_short_curves_are_not_judged():
+    falling = np.linspace(0.6, 0.3, 40)
+    assert not cv.judge(curve(falling, falling)).converged
+    short = cv.judge(curve(np.full(39, 0.5), np.full(39, 0.5)))
+    assert not short.converged and short.change is None and "at least 40" in short.why
+    assert cv.converged_at(curve(np.linspace(0.1, 0.9, 30), np.linspace(0.1, 0.9, 30))) is None
+
+
+def test_the_rule_refuses_one_seed_and_small_evaluations():
+    with pytest.raises(ValueError, match="at least 2 seeds"):
+        cv.judge(curve(np.full(20, 0.5)))
+    with pytest.raises(ValueError, match="val evaluations of 200 episodes: the rule needs "
+                                         "at least 1,000"):
+        cv.judge(curve(np.full(20, 0.5), np.full(20, 0.5), episodes=200))
+
+
+def write_metrics(run_dir, success, episodes=1000, extra_last=False, cut=False):
+    run_dir.mkdir(parents=True)
+    lines = []
+    for i, s in enumerate(success, 1):
+        lines.append({"kind": "train", "env_steps": i * STEP, "success": 0.1})
+        lines.append({"kind": "val", "env_steps": i * STEP, "episodes": episodes,
+                      "success": s, "spl": 0.2})
+    text = "".join(json.dumps(r) + "\n" for r in lines)
+    if cut:
+        text += '{"kind": "val", "env_st'
+    (run_dir / "metrics.jsonl").write_text(text)
+
+
+def test_check_runs_reads_the_runs_metrics_and_their_shared_steps(tmp_path):
+    write_metrics(tmp_path / "a", [0.5] * 41, cut=True)    # one more evaluation, a cut line
+    write_metrics(tmp_path / "b", [0.5] * 40)
+    v = cv.check_runs([tmp_path / "a", tmp_path / "b"])
+    assert v.converged and v.evaluations == 40 and v.env_steps == 40 * STEP
+    write_metrics(tmp_path / "c", [])
+    with pytest.raises(ValueError, match=r"c/metrics.jsonl: no val evaluation"):
+        cv.read_val_curve(tmp_path / "c")
+    write_metrics(tmp_path / "d", [1.5] * 20)
+    with pytest.raises(ValueError, match="d/metrics.jsonl: a val success outside"):
+        cv.read_val_curve(tmp_path / "d")
+
+
+@flax.struct.dataclass
+class Counter:
+    params: dict            # {"n": the chunks done} (the field the driver's best reads)
+
+
+def stand_in_stage(success_of_chunk) -> Stage:
+    """A stage with no network: the runner counts chunks; val success is scripted."""
+    return Stage(name="train stand-in", unit="step", step_name="env_steps",
+                 rate_key="steps_per_s", per_chunk=STEP, total=200 * STEP,
+                 chunk=lambda r: (Counter({"n": r.params["n"] + 1}),
+                                  {"loss_finite": jnp.array([True] * 2)}),
+                 summarize=lambda m: {}, score_keys=("success",), best_keys=("success",),
+                 validate=lambda r: {"success": success_of_chunk(int(r.params["n"])),
+                                     "episodes": 1000.0})
+
+
+def test_the_trainer_stops_when_the_rule_holds_and_resumes_to_the_cap(tmp_path):
+    cfg = get_config("tiny", eval_every_chunks=1, checkpoint_every_chunks=1000)
+    dirs = [tmp_path / "r-s0", tmp_path / "r-s1"]
+    for d in dirs:
+        d.mkdir()
+    plateau = lambda n: min(0.01 * n, 0.5)            # flat from chunk 50
+    runners = [Counter({"n": jnp.array(0)}) for _ in dirs]
+    out = run_population(stand_in_stage(plateau), runners, [cfg, cfg], dirs, resume=False,
+                         progress=False, stop=cv.stop_when_converged())
+    stopped_at = out[0]["env_steps"]
+    assert out[0]["stopped"].startswith("converged: seed-mean val success 50.0")
+    assert 50 * STEP < stopped_at < 200 * STEP
+    assert cv.check_runs(dirs).converged and cv.check_runs(dirs).env_steps == stopped_at
+    # a checkpoint at the stop: --resume continues there, to the cap without the rule
+    out = run_population(stand_in_stage(plateau), runners, [cfg, cfg], dirs, resume=True,
+                         progress=False)
+    assert out[0]["env_steps"] == 200 * STEP and out[0]["stopped"] is None
+    records = [json.loads(x) for x in (dirs[0] / "metrics.jsonl").read_text().splitlines()]
+    assert [r["env_steps"] for r in records if r["kind"] == "val"] == \
+        [STEP * i for i in range(1, 201)]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--until-converged"], "--until-converged goes with stage-1 training of --seeds"),
+    (["--until-converged", "--seeds", "100"], "at least 2 seeds trained in one program"),
+    (["--until-converged", "--seeds", "100", "101"],
+     "--eval-episodes-per-room-type 50 gives val evaluations of 200 episodes"),
+    (["--until-converged", "--stage", "pretrain", "--seeds", "1", "2"], "not pre-training"),
+])
+def test_until_converged_bad_values_are_one_line_errors(args, message, tmp_path, capsys):
+    from orgnav_jax import train
+    from orgnav_jax.errors import run_cli
+    run_dir = tmp_path / "run"
+    assert run_cli(train.main, [*args, "--preset", "tiny", "--run-dir", str(run_dir)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err
+    assert not any(tmp_path.iterdir())      # nothing written
