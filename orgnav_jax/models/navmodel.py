@@ -30,7 +30,9 @@ from orgnav_jax.models.encoders import (
 from orgnav_jax.models.init import release_init
 from orgnav_jax.models.org import (
     ORGEncoder, ReleasedORGEncoder, dsp_from_scenes, dsp_replace_from_scenes)
-from orgnav_jax.models.trunk import Trunk
+from orgnav_jax.models.trunk import Trunk, compute_dtype
+from orgnav_jax.models.vtnet import VTNetEncoder
+from orgnav_jax.models.word_vectors import category_table
 from orgnav_jax.scenes.sceneset.features import gather_features
 
 
@@ -117,16 +119,9 @@ def previous_action(model: NavModel, onehot: jax.Array, carry: NavCarry) -> jax.
                   "previous-action input (prev_action)")
 
 
-def compute_dtype(cfg):
-    """The modules' compute dtype for a config's `dtype` field: None (float32 as it is)
-    or jnp.bfloat16 (mixed precision, float32 parameters: models/trunk.py)."""
-    return {"float32": None, "bfloat16": jnp.bfloat16}[getattr(cfg, "dtype", "float32")]
-
-
 def we_encoder(cfg):
     """WE / SAVN's target input (cfg.target_input): SAVN's word-vector layout, or the
     one-hot maps of runs saved before issue 41 (docs/savn.md)."""
-    from orgnav_jax.models.word_vectors import category_table
     return choose({
         "word_vector": lambda: WordVectorEncoder(
             category_table(getattr(cfg, "word_vectors", None)), dtype=compute_dtype(cfg)),
@@ -155,7 +150,6 @@ ENCODERS: dict[str, Callable] = {
 
 def vtnet_encoder(cfg):
     """VTNet's encoder at the config's widths (models/vtnet.py; docs/vtnet.md)."""
-    from orgnav_jax.models.vtnet import VTNetEncoder
     return VTNetEncoder(dim=cfg.vtnet_dim, heads=cfg.vtnet_heads, ffn=cfg.vtnet_ffn,
                         layers=cfg.vtnet_encoder_layers, mask=cfg.vtnet_mask,
                         dtype=compute_dtype(cfg))

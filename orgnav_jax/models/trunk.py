@@ -51,6 +51,12 @@ from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS
 from orgnav_jax.errors import choose
 
 
+def compute_dtype(cfg):
+    """The modules' compute dtype for a config's `dtype` field: None (float32 as it is)
+    or jnp.bfloat16 (mixed precision, float32 parameters; see above)."""
+    return {"float32": None, "bfloat16": jnp.bfloat16}[getattr(cfg, "dtype", "float32")]
+
+
 def cast(x, dtype):
     """x in the compute dtype (unchanged when dtype is None: float32 as it is)."""
     return x if dtype is None else x.astype(dtype)

@@ -59,7 +59,8 @@ import numpy as np
 
 from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS
 from orgnav_jax.errors import choose
-from orgnav_jax.models.trunk import LSTMGates, Trunk, cast, matmul
+from orgnav_jax.models.init import glorot_uniform
+from orgnav_jax.models.trunk import LSTMGates, Trunk, cast, compute_dtype, matmul
 
 CELLS = FEATURE_GRID * FEATURE_GRID
 LOCATION_ENHANCEMENT = 7      # label, box (4), score, target indicator
@@ -230,7 +231,6 @@ class VTNetEncoder(nn.Module):
     @nn.nowrap
     def build_trunk(self, cfg) -> "VTNetTrunk":
         """The trunk this encoder works with (models/navmodel.py: build_model)."""
-        from orgnav_jax.models.navmodel import compute_dtype
         return VTNetTrunk(dim=self.dim, heads=self.heads, ffn=self.ffn,
                           decoder_layers=cfg.vtnet_decoder_layers,
                           fuse_channels=cfg.fuse_channels, action_embed=cfg.fuse_channels,
@@ -363,7 +363,6 @@ def pretrain_init(params, key: jax.Array):
     Transformer._reset_parameters redraws Glorot uniform and whose attention biases
     nn.MultiheadAttention zeroes (its FFN biases keep torch's default); LayerNorm (1, 0).
     Shapes and dtypes unchanged, deterministic in `key`."""
-    from orgnav_jax.models.init import glorot_uniform
     leaves, treedef = jax.tree_util.tree_flatten_with_path(params)
     keys = jax.random.split(key, max(len(leaves), 1))
     out = []
