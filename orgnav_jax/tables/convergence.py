@@ -119,6 +119,30 @@ def seed_mean_curve(curves: Sequence[ValCurve]) -> SeedMeanCurve:
     return SeedMeanCurve(steps, success, len(curves), episodes)
 
 
+def span_means(curve: SeedMeanCurve, edges: Sequence[int]) -> list[float | None]:
+    """The curve's mean (points) over the evaluations in each span (edges[i], edges[i+1]]
+    of env steps; None for a span without one."""
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        inside = (curve.steps > lo) & (curve.steps <= hi)
+        out.append(float(curve.success[inside].mean()) if inside.any() else None)
+    return out
+
+
+def seed_span_means(curves: Sequence[ValCurve], parts: int) -> list[float | None]:
+    """Each run's mean val success (points) over the evaluations in each of `parts`
+    equal spans of its own run (to its last evaluation), averaged over the runs: for
+    seeds whose evaluation steps differ (SAVN's count the steps episodes took). None for
+    a span some run has no evaluation in."""
+    per_run = []
+    for c in curves:
+        edges = [round(int(c.steps[-1]) * i / parts) for i in range(parts + 1)]
+        one = SeedMeanCurve(c.steps, 100 * c.success, 1, int(c.episodes.min()))
+        per_run.append(span_means(one, edges))
+    return [None if any(r[i] is None for r in per_run)
+            else float(np.mean([r[i] for r in per_run])) for i in range(parts)]
+
+
 def applicable(curve: SeedMeanCurve) -> str | None:
     """Why the rule cannot judge this curve (one line), or None when it can."""
     if curve.seeds < MIN_SEEDS:
