@@ -17,9 +17,9 @@ LAYERS = (
     ("constants", "errors", "safe_write", "tree", "compile_cache"),
     ("scenes.sceneset",),   # the SceneSet data model: what every source produces
     ("scenes.synthetic",),  # the procedural generator
+    ("scenes.offline",),    # the authors' format (their episode files: EpisodeSets)
     ("scenes", "scenes.summary"),   # the front door (scenes/__init__.py), a set's summary
     ("episodes", "env", "reference_env"),
-    ("scenes.offline",),    # the authors' format: their episode files are EpisodeSets
     ("models",),
     ("gymnax_env",),     # env + the models' feature decoding, as a gymnax Environment
     ("evaluation",),

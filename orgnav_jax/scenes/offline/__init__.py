@@ -1,8 +1,9 @@
 """The authors' offline AI2-THOR data format (see docs/offline.md):
 import FloorPlanN folders into a SceneSet and export any SceneSet to them; their
 evaluation episodes, JSON or pickle, are read and written by
-orgnav_jax.scenes.offline.episodes (it needs orgnav_jax.episodes, so this package sits
-above the episodes and the env; nothing below imports it).
+orgnav_jax.scenes.offline.episodes (as EpisodeSets, the data model's:
+scenes/sceneset/episodes.py). A scene source beside scenes/synthetic: it imports only
+the data model, and nothing below it imports it.
 
     from orgnav_jax import scenes
     from orgnav_jax.scenes import offline

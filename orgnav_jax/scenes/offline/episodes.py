@@ -4,7 +4,8 @@ A record is {"scene": "FloorPlan22", "goal_object_type": "Microwave",
 "task_data": [objectIds of that type], "state": "1.25|2.00|90|30"}. Pickles are read
 by PlainUnpickler, which refuses every class (so no code can run): only plain dicts,
 lists, tuples, strings and numbers load. Records map onto a SceneSet through
-orgnav_jax.episodes.from_records (unreachable targets: warned, skipped and counted).
+orgnav_jax.scenes.sceneset.episodes.from_records (unreachable targets: warned, skipped and
+counted).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from orgnav_jax.constants import CATEGORIES
-from orgnav_jax.episodes import EpisodeSet, from_records
+from orgnav_jax.scenes.sceneset.episodes import EpisodeSet, from_records
 from orgnav_jax.scenes.sceneset.keys import state_key
 from orgnav_jax.scenes.offline.exporter import object_ids
 from orgnav_jax.scenes.offline.validate import OfflineFormatError, object_type

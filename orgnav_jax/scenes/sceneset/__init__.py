@@ -8,6 +8,7 @@
     storage.py    save / load a directory of .npy files (memory-mapped)
     features.py   stored codes -> model inputs, inside jit; quantize.py: int8 storage
     keys.py       the authors' state keys "x|z|rotation|horizon"
+    episodes.py   the EpisodeSet (episodes over one SceneSet) and its authors'-form records
 
 Nothing here knows a scene source (scenes/synthetic, scenes/offline sit above it).
 """
