@@ -12,9 +12,11 @@ errors too.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 EXIT_USER_ERROR = 2
 
@@ -164,8 +166,6 @@ def read_str(doc: dict, field: str, source, *, choices=None, default=_MISSING) -
 def read_json(path, what: str = "JSON"):
     """The parsed JSON of a file; a ValueError naming the file when it is not JSON (cut
     short by a kill, say) and an OSError naming it when it cannot be read."""
-    import json
-    from pathlib import Path
     try:
         text = Path(path).read_bytes().decode("utf-8")
     except UnicodeDecodeError:

@@ -37,9 +37,11 @@ from orgnav_jax.models import model_inputs
 from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
 from orgnav_jax.tpn.test_time import build_tpn, init_tpn_params
+from orgnav_jax.training.config import load_config
 from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
 from orgnav_jax.training.run_dir import open_run_dir
+from orgnav_jax.training.runs import device_splits, load_run_model, preflight_tpn
 from orgnav_jax.tree import where_rows
 
 
@@ -176,8 +178,6 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
               stop_after_chunks: int | None = None) -> dict:
     """Train (or resume) the TPN of cfg.run_dir on its frozen base -> summary dict.
     The best-on-val TPN (accuracy on the val episodes' deadlock steps) is kept."""
-    from orgnav_jax.training.config import load_config
-    from orgnav_jax.training.runs import load_run_model, preflight_tpn
     # config ranges, scenes, memory, then the base's checkpoint: before anything is written
     scenes = preflight_tpn(cfg, load_config(cfg.base_dir))
     model, base_params, nav_cfg = load_run_model(cfg.base_dir)
@@ -188,7 +188,6 @@ def train_tpn(cfg: TPNConfig, resume: bool = False, progress: bool = True,
 
 def _train_tpn(cfg: TPNConfig, run_dir: Path, model, base_params, nav_cfg, scenes,
                resume: bool, progress: bool, stop_after_chunks: int | None) -> dict:
-    from orgnav_jax.training.runs import device_splits
     train_scenes, val_scenes = device_splits(scenes, "train", "val")   # preflight's set
     tpn = build_tpn(nav_cfg, cfg.network)
     optimizer, chunk_fn, collect_val, val_metrics = cached_programs(

@@ -54,6 +54,8 @@ from orgnav_jax.tpn.config import (
 from orgnav_jax.tpn.deadlock import detect, detector_init
 from orgnav_jax.tpn.fast_weights import DenseFastWeights, scope_size
 from orgnav_jax.tpn.lowrank import LowRankFastWeights, make_plan, plan_floats
+from orgnav_jax.training.checkpoints import RunCheckpoints
+from orgnav_jax.training.runs import load_run_model
 
 
 @struct.dataclass
@@ -186,8 +188,6 @@ def load_tpn_policy(run_dir: str | Path, **test_time):
     run (its best-on-val TPN and its base's best-on-val model); `test_time` overrides
     test-time fields (config.TEST_TIME_FIELDS: tpn_lr, scope, when, target, deadlock,
     cosine_threshold, reset_every, tpn_train_mode)."""
-    from orgnav_jax.training.checkpoints import RunCheckpoints
-    from orgnav_jax.training.runs import load_run_model
     cfg = load_tpn_config(run_dir)
     cfg = get_tpn_config(**{**dataclasses.asdict(cfg), **test_time})
     model, base_params, nav_cfg = load_run_model(cfg.base_dir)

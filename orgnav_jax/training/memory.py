@@ -23,7 +23,11 @@ import dataclasses
 import os
 import sys
 
-from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS, NUM_CATEGORIES
+import jax
+import numpy as np
+
+from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS, NUM_CATEGORIES, split_index
+from orgnav_jax.models import build_model, init_params, tpn_net, vtnet
 
 CELLS = FEATURE_GRID * FEATURE_GRID
 C, A = NUM_CATEGORIES, NUM_ACTIONS
@@ -56,9 +60,7 @@ def scene_bytes(scenes) -> int:
 def training_scene_bytes(scenes) -> int:
     """Bytes of the train and val views a training run holds (split views of a flat set
     hold only their own rooms' states)."""
-    import numpy as np
 
-    from orgnav_jax.constants import split_index
     split = np.asarray(scenes.split)
     return sum(scene_bytes(scenes.split_view(s)) for s in ("train", "val")
                if (split == split_index(s)).any())
@@ -66,9 +68,7 @@ def training_scene_bytes(scenes) -> int:
 
 def param_count(cfg, scenes) -> int:
     """Parameters of the model cfg names for these scenes (shapes only: no arrays made)."""
-    import jax
 
-    from orgnav_jax.models import build_model, init_params
     train = scenes.split_view("train")
     model = build_model(cfg, train)
     shapes = jax.eval_shape(lambda: init_params(model, jax.random.PRNGKey(0), train))
@@ -84,8 +84,7 @@ def _step_floats(cfg, scenes) -> int:
     trunk = CELLS * (2 * gc + E + (gc + C + E) + F) + 4 * H
     recur = cfg.lstm_layers * 10 * H + 64 + 2 * A
     if cfg.model == "vtnet":        # the transformer's activations (models/vtnet.py)
-        from orgnav_jax.models.vtnet import step_floats
-        return inputs + step_floats(cfg, C) + 4 * H + recur
+        return inputs + vtnet.step_floats(cfg, C) + 4 * H + recur
     return inputs + encoder + trunk + recur
 
 
@@ -122,7 +121,6 @@ def tpn_memory_bytes(cfg, nav_cfg, scenes, params: int | None = None) -> dict[st
     episodes (num_envs x episode_cap steps: LSTM outputs, env trails), the TPN's activations
     over them and its (episode_cap x episode_cap) causal attention per episode (forward and
     backward), the base's parameters and the scenes."""
-    from orgnav_jax.models.tpn_net import step_floats
     N, T, H = cfg.num_envs, cfg.episode_cap, nav_cfg.hidden
     sig = 4 * cfg.signature_dim if cfg.deadlock == "cosine" else 0
     P = param_count(nav_cfg, scenes) if params is None else params
@@ -130,7 +128,8 @@ def tpn_memory_bytes(cfg, nav_cfg, scenes, params: int | None = None) -> dict[st
         "parameters": 4 * P * 2,
         "episodes": N * T * (4 * (H + A + 1) + 3 + sig)          # EpisodeBatch, detector
                     + 4 * N * _step_floats(nav_cfg, scenes),     # one step of the base
-        "activations": 4 * 2 * N * T * step_floats(H, cfg.action_embed, min(cfg.top_k, T)),
+        "activations": 4 * 2 * N * T * tpn_net.step_floats(H, cfg.action_embed,
+                                                          min(cfg.top_k, T)),
         "attention": 4 * N * T * T,      # the (T, T) scores of each episode (XLA fuses
                                          # the mask and the top-k into them)
         "trail": 4 * N * (T + 1) * TRAIL_COPIES,
@@ -143,7 +142,6 @@ def available_memory() -> tuple[int | None, str]:
     (memory_stats: bytes_limit - bytes_in_use), else the host's MemAvailable (or physical
     memory). None if unknown."""
     try:
-        import jax
         dev = jax.local_devices()[0]
         stats = dev.memory_stats() if dev.platform != "cpu" else None
         if stats and stats.get("bytes_limit"):

@@ -41,9 +41,11 @@ from flax import struct, traverse_util
 
 from orgnav_jax import env
 from orgnav_jax.compile_cache import compiled_once
+from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS
 from orgnav_jax.errors import choose
 from orgnav_jax.evaluation import Policy
 from orgnav_jax.models import init_params, model_inputs, previous_action, reset_carry
+from orgnav_jax.models.navmodel import ModelInputs
 from orgnav_jax.training.losses import gae
 from orgnav_jax.training.rollout import EpisodeStats
 from orgnav_jax.tree import tile, where_rows
@@ -679,8 +681,6 @@ def scene_widths(scenes) -> tuple[int, int, int]:
 
 def zero_inputs(widths: tuple[int, int, int], batch: int, k: int):
     """Zero ModelInputs (batch, k, ...) for scenes of these widths."""
-    from orgnav_jax.constants import FEATURE_GRID, NUM_ACTIONS
-    from orgnav_jax.models.navmodel import ModelInputs
     G, C, d = widths
     z = lambda *s: jnp.zeros((batch, k) + s)
     return ModelInputs(z(FEATURE_GRID, FEATURE_GRID, G), z(C, d), z(C, 4), z(C), z(C),

@@ -26,14 +26,19 @@ written by all processes together.
 
 from __future__ import annotations
 
+import socket
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 
 import jax
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from orgnav_jax.errors import UserError
+from orgnav_jax.training.run_dir import open_run_dir
 
 DATA = "data"          # the mesh axis the env batch is sharded over
 # RunnerState fields whose leaves have the env batch as their leading axis
@@ -90,8 +95,6 @@ def check_coordinator(address: str) -> tuple[str, int]:
 
 def wait_for_port(host: str, port: int, timeout_s: float) -> None:
     """Until the coordinator's port accepts a connection; UserError after timeout_s."""
-    import socket
-    import time
     deadline = time.monotonic() + timeout_s
     while True:
         try:
@@ -127,7 +130,6 @@ def broadcast_flag(ok: bool) -> bool:
     """Process 0's `ok` on every process (True in a single process)."""
     if jax.process_count() == 1:
         return ok
-    from jax.experimental import multihost_utils
     return bool(multihost_utils.broadcast_one_to_all(np.int32(ok)))
 
 
@@ -225,12 +227,10 @@ class open_shared_run_dir:
     that process 0 will never join. One process: exactly open_run_dir."""
 
     def __init__(self, run_dir, cfg, resume: bool, load_saved):
-        from orgnav_jax.training.run_dir import open_run_dir
         self.run_dir = run_dir
         self.inner = open_run_dir(run_dir, cfg, resume, load_saved) if is_primary() else None
 
     def __enter__(self):
-        from pathlib import Path
         err = None
         if self.inner is not None:
             try:

@@ -20,6 +20,7 @@ import optax
 
 from orgnav_jax import env
 from orgnav_jax.models import init_params
+from orgnav_jax.models.vtnet import visual_mask
 from orgnav_jax.training.config import TrainConfig
 from orgnav_jax.training.losses import a2c_loss, gae
 from orgnav_jax.training.scale import constrain
@@ -45,7 +46,6 @@ def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
         opt = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
                           optax.adam(cfg.lr, eps=cfg.adam_eps))
     if getattr(cfg, "pretrained", None) is not None and cfg.pretrained_lr_scale != 1.0:
-        from orgnav_jax.models.vtnet import visual_mask
         opt = optax.chain(opt, optax.masked(optax.scale(cfg.pretrained_lr_scale),
                                             visual_mask))
     return opt
