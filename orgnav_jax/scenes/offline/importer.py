@@ -35,6 +35,7 @@ from orgnav_jax.scenes.offline.splits import assign_splits
 from orgnav_jax.scenes.offline.validate import SCENE_NAME, OfflineFormatError, examples
 from orgnav_jax.scenes.sceneset.assemble import SourceRoom, assemble
 from orgnav_jax.scenes.sceneset.fields import FORMAT_INFO
+from orgnav_jax.scenes.sceneset.quantize import FEATURE_DTYPES, with_features
 from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 from orgnav_jax.scenes.sceneset.storage import is_scene_set, save
 
@@ -179,7 +180,6 @@ def import_to(offline_dir: str | os.PathLike, out: str | os.PathLike,
 
     `out` must be absent, empty or a SceneSet (checked before importing); anything else
     is refused and left untouched."""
-    from orgnav_jax.scenes.sceneset.quantize import FEATURE_DTYPES, with_features
     if features is not None and features not in FEATURE_DTYPES:
         raise ValueError(f"features {features!r}: expected one of {list(FEATURE_DTYPES)}")
     check_output_dir(out, is_scene_set, "a SceneSet")

@@ -30,6 +30,7 @@ import numpy as np
 from orgnav_jax.errors import field_error, is_int, is_number, read_field, read_object, read_str
 from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.sceneset.fields import FORMAT_NAME, FORMAT_VERSION
+from orgnav_jax.scenes.sceneset.flat import from_padded
 from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
 META_FILE = "meta.json"
@@ -261,7 +262,6 @@ def read_meta_fields(meta: dict, meta_path) -> tuple[dict, tuple]:
 
 def _from_padded_file(path: Path, arrays: dict, info: tuple) -> SceneSet:
     """A version-1 (padded) set, converted in memory (flat.from_padded), with a warning."""
-    from orgnav_jax.scenes.sceneset.flat import from_padded
     valid = arrays.get("state_valid")
     if valid is None or valid.ndim != 2 or valid.dtype != bool:
         raise ValueError(f"{path}: format version {PADDED_VERSION} needs field 'state_valid' "

@@ -6,6 +6,7 @@ import dataclasses
 
 from orgnav_jax.constants import FLOORPLAN_OFFSET, ROOM_TYPES, SPLITS
 from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
+from orgnav_jax.scenes.synthetic.layout import ROOM_SIZE_PROFILES
 from orgnav_jax.scenes.synthetic.perception import Perception
 
 
@@ -41,7 +42,6 @@ class ScenePreset:
     perception: Perception = Perception()
 
     def __post_init__(self):
-        from orgnav_jax.scenes.synthetic.layout import ROOM_SIZE_PROFILES
         if not isinstance(self.perception, Perception):
             raise ValueError(f"preset {self.name!r}: perception must be a Perception, got "
                              f"{type(self.perception).__name__}")
