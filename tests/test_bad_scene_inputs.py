@@ -218,6 +218,11 @@ def _next_out_of_range(path):
     _set(path, "next_state", lambda a: a.__setitem__((t, 0), 10_000))
 
 
+def _confidence_37(path):
+    t = _flat(path, 0, 3)
+    _set(path, "det_conf", lambda a: a.__setitem__((t, CATEGORIES.index("Sink")), 37.5))
+
+
 CORRUPT = {
     "nan-appearance": (_nan_appearance, r"field 'appearance' holds NaN at scene 1 "
                        r"\(FloorPlan422\) state 7 category Sink; expected finite values"),
@@ -233,6 +238,10 @@ CORRUPT = {
                                 r"scene 1 \(FloorPlan422\) state 4 action MoveAhead; "
                                 r"expected a state of that scene \(flat indices "
                                 r"\d+\.\.\d+\)"),
+    # round five (issue 67): the ranges the format promises, not finiteness only
+    "det_conf-37.5": (_confidence_37, r"field 'det_conf' holds 37\.5 at scene 0 "
+                      r"\(FloorPlan401\) state 3 category Sink; expected detection "
+                      r"confidences in \[0, 1\]"),
 }
 
 
@@ -466,3 +475,146 @@ def test_seeds_widths_and_floorplan_numbers_out_of_range_are_one_line(offline, c
     line = cli_error(main, ["import", "--offline-dir", src, "--out", tmp_path / "o"])
     assert "'FloorPlan99999999999': FloorPlan number beyond 2,147,483,647" in line, line
     assert_unchanged(tmp_path, before)
+
+
+# ------------------------------------------------------------------ round five (issue 67)
+# The scene cache, checked against the preset's whole definition on every load. A
+# 4-room preset (one train room per type, the tiny set's widths) stands in for
+# `calibrated`; its "build" is a selection of the session's tiny set (no generation).
+FOUR = "four"
+
+
+@pytest.fixture
+def four_cache(tiny_scenes, tmp_path, monkeypatch):
+    """$ORGNAV_CACHE in tmp_path/cache, preset FOUR registered, build faked -> (path of
+    its cache entry, the good set, the list of builds made)."""
+    from orgnav_jax.scenes.synthetic import cache, presets
+    from orgnav_jax.scenes.synthetic.builder import preset_info
+    preset = presets.ScenePreset(FOUR, (2, 1, 1), global_dim=16, appearance_dim=16,
+                                 num_rooms=4)
+    monkeypatch.setitem(presets.SCENE_PRESETS, FOUR, preset)
+    monkeypatch.setenv("ORGNAV_CACHE", str(tmp_path / "cache"))
+    ids = np.asarray(tiny_scenes.scene_id).tolist()
+    good = tiny_scenes.select([ids.index(fp) for fp, _, _ in preset.floorplans()])
+    good = good.replace(info=preset_info(preset, 0))
+    builds = []
+
+    def fake_build(name, seed, progress=False):
+        builds.append((name, seed))
+        return good
+
+    monkeypatch.setattr(cache, "build", fake_build)
+    cache.clear_loaded()
+    yield cache.cache_path(FOUR, 0), good, builds
+    cache.clear_loaded()
+
+
+def _perception_knob(path, good):
+    _edit_meta(path, lambda m: m["info"].update({"perception.confusion": 0.2}))
+
+
+def _fewer_rooms(path, good):      # a slot left by a test or an interrupted build
+    S.save(good.select([0, 1]), path)
+
+
+def _meta_gone(path, good):
+    (path / "meta.json").unlink()
+
+
+def _confidence_out_of_range(path, good):
+    _confidence_37(path)
+
+
+STALE = {
+    "perception-knob": (_perception_knob, r"is not the set of preset 'four' seed 0 as "
+                        r"defined now: perception\.confusion 0\.2, expected 0\.0 \(the "
+                        r"default, not recorded\)"),
+    "fewer-rooms": (_fewer_rooms, r"is not the set of preset 'four' seed 0 as defined "
+                    r"now: 2 rooms, expected 4"),
+    "meta-gone": (_meta_gone, r"is damaged \(meta\.json is missing\)"),
+    "det_conf-37.5": (_confidence_out_of_range, r"is damaged \(.*field 'det_conf' holds "
+                      r"37\.5 at scene 0 \(FloorPlan1\) state 3 category Sink"),
+}
+
+
+@pytest.mark.parametrize("case", list(STALE))
+def test_a_cached_set_of_another_definition_or_damaged_is_rebuilt_in_place(
+        case, four_cache, tmp_path, capsys):
+    """Issue 67: a cached set whose info (perception knobs), rooms or values are not what
+    the preset defines, or whose meta.json is gone, was used (or refused only after a
+    rebuild, pointing at "another path"); it is rebuilt in place with a note naming why,
+    and the next load uses the rebuilt set. Nothing outside the entry is touched."""
+    from orgnav_jax.scenes.synthetic import cache
+    path, good, builds = four_cache
+    S.save(good, path)
+    STALE[case][0](path, good)
+    (tmp_path / "cache" / "mine.txt").write_text("a user's file beside the entry\n")
+    capsys.readouterr()
+    got = cache.load_or_build(FOUR, 0, progress=False, mmap=True)
+    err = capsys.readouterr().err
+    assert re.search(rf"note: the cached scene set {re.escape(str(path))} "
+                     rf"{STALE[case][1]}.*: rebuilding it in place", err), err
+    assert builds == [(FOUR, 0)] and got.num_scenes == 4
+    assert cache.definition_mismatch(got, S.get_preset(FOUR), 0) == []
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == ["mine.txt", path.name]
+    assert is_scene_set(path)
+    cache.load_or_build(FOUR, 0, progress=False, mmap=True)
+    assert builds == [(FOUR, 0)] and capsys.readouterr().err == ""
+
+
+def test_a_cache_entry_holding_foreign_files_is_refused_naming_the_variable(
+        four_cache, tmp_path, cli_error):
+    """An entry that is not the program's own (a user's file in it) is refused before
+    anything is built, naming $ORGNAV_CACHE; nothing is changed."""
+    path, good, builds = four_cache
+    S.save(good, path)
+    (path / "meta.json").unlink()
+    (path / "notes.txt").write_text("mine\n")
+    before = snapshot(tmp_path)
+    msg = cli_error(main, ["info", FOUR])
+    assert msg == (f"error: scene cache entry {path} holds notes.txt, which this program "
+                   "did not write: move them away, or set $ORGNAV_CACHE to another "
+                   "directory"), msg
+    assert builds == []
+    assert_unchanged(tmp_path, before)
+
+
+def test_a_perception_knob_given_twice_is_refused_and_summaries_show_the_knobs(
+        tiny_scenes, tmp_path, cli_error):
+    """`--perception confusion=0.1 confusion=0.2` took the last silently; no summary
+    (`scenes build --json`, `scenes info`) showed any knob."""
+    from orgnav_jax.scenes.summary import format_summary, summarize
+    msg = cli_error(main, ["build", "--preset", "tiny", "--perception", "confusion=0.1",
+                           "global_noise=0.5", "confusion=0.2", "--out", tmp_path / "b"])
+    assert msg == ("error: perception knob confusion given twice ('confusion=0.1', "
+                   "'confusion=0.2'): expected each knob once"), msg
+    assert not (tmp_path / "b").exists()
+    noisy = tiny_scenes.replace(info=tiny_scenes.info + (("perception.confusion", 0.2),))
+    summary = summarize(noisy)
+    assert summary["perception"]["confusion"] == 0.2
+    assert summary["perception"]["peak_recall"] == 0.95          # every knob shown
+    assert "perception: confusion 0.2 (other knobs at their defaults)" in \
+        format_summary(summary)
+    assert summarize(tiny_scenes)["perception"]["confusion"] == 0.0
+
+
+def test_numpy_numbers_are_numbers_to_the_api():
+    """np.float32(0.2) as a perception knob was refused as out of range; numpy numbers as
+    preset or config fields reached json.dumps (a traceback when a set or run is saved)."""
+    import json
+
+    from orgnav_jax.scenes.synthetic.builder import preset_info
+    from orgnav_jax.scenes.synthetic.perception import Perception
+    from orgnav_jax.training.config import get_config
+    knobs = Perception(global_noise=np.float32(0.2), min_box_area=np.int64(64))
+    assert type(knobs.global_noise) is float and abs(knobs.global_noise - 0.2) < 1e-7
+    preset = S.get_preset("tiny", rooms_per_type=(np.int64(2), 1, 1),
+                          global_dim=np.int32(8), anchor_probability=np.float32(0.5),
+                          perception=knobs)
+    json.dumps(preset_info(preset, np.int64(3)))
+    assert preset.rooms_per_type == (2, 1, 1) and type(preset.global_dim) is int
+    with pytest.raises(ValueError, match=r"global_dim 8\.5, expected an integer"):
+        S.get_preset("tiny", global_dim=8.5)
+    cfg = get_config("tiny", lr=np.float32(1e-3), num_envs=np.int64(8))
+    assert type(cfg.lr) is float and type(cfg.num_envs) is int
+    assert json.loads(cfg.to_json())["num_envs"] == 8

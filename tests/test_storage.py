@@ -335,13 +335,20 @@ def test_load_or_build_keeps_a_set_another_process_saved_meanwhile(bath, tmp_pat
     assert (path / storage.META_FILE).stat().st_ino != inode
 
 
-def test_load_or_build_caches(bath, tmp_path, monkeypatch):
+def tiny_of_seed(tiny_scenes, seed: int) -> scenes.SceneSet:
+    """tiny_scenes recorded as the tiny set of `seed` (what the cache checks: the info,
+    widths and rooms; a stand-in for building it)."""
+    from orgnav_jax.scenes.synthetic.builder import preset_info
+    return tiny_scenes.replace(info=preset_info(get_preset("tiny"), seed))
+
+
+def test_load_or_build_caches(tiny_scenes, tmp_path, monkeypatch):
     from orgnav_jax.scenes.synthetic import cache
     calls = []
 
     def fake_build(preset, seed, progress=False):
         calls.append((preset, seed))
-        return bath
+        return tiny_of_seed(tiny_scenes, seed)
 
     monkeypatch.setattr(cache, "build", fake_build)
     monkeypatch.setenv("ORGNAV_CACHE", str(tmp_path / "cache"))

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from orgnav_jax.constants import CATEGORIES, ROOM_TYPES, SPLITS, TARGETS, category_index
 from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
+from orgnav_jax.scenes.synthetic.perception import Perception
 from orgnav_jax.scenes.synthetic.presets import SCENE_PRESETS
 from orgnav_jax.scenes.sceneset.fields import PER_STATE_FIELDS, UNREACHABLE
 from orgnav_jax.scenes.sceneset.sceneset import SceneSet
@@ -43,6 +46,7 @@ def summarize(scenes: SceneSet) -> dict:
         "anchor_probability": scenes.meta("anchor_probability", ANCHOR_PROBABILITY
                                           if scenes.meta("preset") in SCENE_PRESETS
                                           else None),
+        "perception": perception_of(scenes),
         "num_scenes": scenes.num_scenes, "states_total": scenes.num_states,
         "rooms": rooms,
         "states": {"min": int(n_states.min()), "median": float(np.median(n_states)),
@@ -62,6 +66,19 @@ def summarize(scenes: SceneSet) -> dict:
     }
 
 
+def perception_of(scenes: SceneSet) -> dict | None:
+    """Every perception knob of a generated set ({knob: value}: the defaults with the
+    values its info records, perception.py), None for a set of another source (an
+    import: its perception is whatever its detector and backbone were)."""
+    if scenes.meta("preset") not in SCENE_PRESETS:
+        return None
+    knobs = dataclasses.asdict(Perception())
+    for key, value in scenes.info:
+        if key.startswith("perception.") and key[len("perception."):] in knobs:
+            knobs[key[len("perception."):]] = value
+    return knobs
+
+
 def format_summary(s: dict) -> str:
     """The dict from `summarize` as a human table."""
     lines = [f"SceneSet preset={s['preset']} seed={s['seed']}: {s['num_scenes']} rooms, "
@@ -70,6 +87,13 @@ def format_summary(s: dict) -> str:
         lines.append(f"anchor probability {s['anchor_probability']:g} (objects placed by "
                      "their anchors; the generator's default is "
                      f"{ANCHOR_PROBABILITY:g})")
+    if s.get("perception") is not None:
+        changed = {k: v for k, v in s["perception"].items()
+                   if v != getattr(Perception(), k)}
+        lines.append("perception: " + (", ".join(f"{k} {v}" for k, v in changed.items())
+                                       + " (other knobs at their defaults)" if changed else
+                                       "every knob at its default (small's clean "
+                                       "perception)"))
     lines.append(f"{'rooms':<8}" + "".join(f"{t:>13}" for t in ROOM_TYPES))
     for split, per in s["rooms"].items():
         lines.append(f"{split:<8}" + "".join(f"{per[t]:>13}" for t in ROOM_TYPES))

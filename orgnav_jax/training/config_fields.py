@@ -131,6 +131,11 @@ def check_types(cfg, prefix: str) -> None:
             want = {bool: "true or false", int: "an integer", float: "a number",
                     str: "a string"}.get(kind, "a string or null")
             raise ValueError(f"{prefix} {f.name!r}: {value!r}, expected {want}")
+        if kind in (int, float) and type(value) not in (int, float):
+            # numpy's numbers (np.float32(1e-3), np.int64(8)) as Python's: the config is
+            # written as JSON (to_json) and compared with saved ones
+            object.__setattr__(cfg, f.name, int(value) if isinstance(
+                value, numbers.Integral) else float(value))
 
 
 def check_ranges(cfg, ranges: dict[str, Range], prefix: str) -> None:

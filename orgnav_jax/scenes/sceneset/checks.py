@@ -163,6 +163,25 @@ def first_nonfinite(arr) -> tuple[tuple[int, ...], float] | None:
     return None
 
 
+def first_outside(arr, lo: float, hi: float) -> tuple[tuple[int, ...], float] | None:
+    """(index, value) of the first value of a (finite) array outside [lo, hi], or None;
+    streamed in chunks like first_nonfinite."""
+    arr = np.asarray(arr) if not isinstance(arr, np.ndarray) else arr
+    if arr.size == 0:
+        return None
+    flat = arr.reshape(-1)
+    item = flat.dtype.itemsize
+    for start in range(0, flat.size, FINITE_CHUNK):
+        block = np.asarray(flat[start:start + FINITE_CHUNK])
+        bad = (block < lo) | (block > hi)
+        release_pages(flat, start * item, (start + block.size) * item)
+        if bad.any():
+            j = int(np.argmax(bad))
+            return (tuple(int(i) for i in np.unravel_index(start + j, arr.shape)),
+                    float(block[j]))
+    return None
+
+
 def _scene(names: list[str], n: int) -> str:
     return f"scene {n} ({names[n]})" if 0 <= n < len(names) else f"scene {n}"
 
@@ -223,6 +242,7 @@ def validate_values(scenes, source: str = "SceneSet") -> None:
       of its own scene;
     - every float field finite (pose, det_box, det_conf, float appearance and
       global_feat, the bases and scales if present), streamed in chunks; scales > 0;
+      det_conf in [0, 1];
     - dist in 0..UNREACHABLE, expert_action in NO_ACTION..DONE, and the expert tables of
       expert.py: dist 0 exactly where the category is visible; Done exactly where
       dist is 0; NO_ACTION exactly where dist is UNREACHABLE; elsewhere expert_action is
@@ -279,6 +299,15 @@ def validate_values(scenes, source: str = "SceneSet") -> None:
                     where += f" category {CATEGORIES[index[1]]}"
             raise ValueError(f"{source}: field {name!r} holds {v} at {where}; expected "
                              "finite values (the data is corrupt: rebuild or re-import it)")
+    # the ranges the format promises beyond finiteness: a detection's confidence
+    conf = fields["det_conf"]
+    found = first_outside(conf, 0.0, 1.0)
+    if found is not None:
+        index, v = found
+        n = int(scene_of[index[0]])
+        raise ValueError(f"{source}: field 'det_conf' holds {v:g} at {_scene(names, n)} state "
+                         f"{index[0] - offsets[n]} category {CATEGORIES[index[1]]}; expected "
+                         "detection confidences in [0, 1] (0: no detection)")
     for name in SCALE_OF.values():
         scale = fields[name]
         if scale is not None and not (np.asarray(scale) > 0).all():

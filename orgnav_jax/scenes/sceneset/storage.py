@@ -76,6 +76,21 @@ def is_scene_set(path: str | os.PathLike) -> bool:
             and all(p.name in own and p.is_file() and not p.is_symlink() for p in entries))
 
 
+def foreign_files(path: str | os.PathLike) -> list[str]:
+    """The names in directory `path` that `save` does not write (not meta.json or a
+    field's .npy, or not a plain file): [] for a SceneSet, a damaged one (say meta.json
+    gone) and an empty directory."""
+    own = _own_files()
+    return sorted(p.name for p in Path(path).iterdir()
+                  if p.name not in own or not p.is_file() or p.is_symlink())
+
+
+def remove_own_set(path: str | os.PathLike) -> None:
+    """Delete a (possibly damaged) SceneSet's own files in `path` and the directory if
+    that empties it (remove_own_set of a path holding other files leaves them)."""
+    _remove_own_set(Path(path))
+
+
 def _remove_own_set(path: Path) -> None:
     """Delete the files `save` writes in `path`, then the directory if that empties it
     (anything else found there is left, with a warning)."""

@@ -129,11 +129,20 @@ def build(preset: str | ScenePreset = DEFAULT_SCENE_PRESET, seed: int = 0, *,
                          anchor_probability=p.anchor_probability, perception=p.perception)
              for fp, _, split in tqdm(plans, desc=f"rooms ({p.name})", disable=not progress,
                                       unit="room")]
+    return stack_rooms(rooms, info=preset_info(p, seed), **feature_bases(p))
+
+
+def preset_info(preset: ScenePreset, seed: int) -> tuple:
+    """The info pairs a set built from (preset, seed) records: the format, the preset's
+    name, the seed, rooms per type, and every field of its definition that differs from
+    the defaults (room sizes and count, anchor probability, perception knobs); the cache
+    (cache.py) compares a cached set's info with these on every load."""
+    p = preset
     info = FORMAT_INFO + (("preset", p.name), ("seed", int(seed)),
                           ("rooms_per_type", tuple(p.rooms_per_type)))
     if p.room_sizes != "default" or p.num_rooms is not None:
-        info += (("room_sizes", p.room_sizes), ("num_rooms", len(plans)))
+        info += (("room_sizes", p.room_sizes), ("num_rooms", len(p.floorplans())))
     if p.anchor_probability != ANCHOR_PROBABILITY:     # (default sets keep their info)
         info += (("anchor_probability", float(p.anchor_probability)),)
     info += tuple(("perception." + k, v) for k, v in p.perception.changed().items())
-    return stack_rooms(rooms, info=info, **feature_bases(p))
+    return info

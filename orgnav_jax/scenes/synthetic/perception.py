@@ -35,6 +35,7 @@ appearance_noise (0.5)     view-dependent noise of the appearance code (the clas
 from __future__ import annotations
 
 import dataclasses
+import numbers
 
 import numpy as np
 
@@ -86,15 +87,18 @@ class Perception:
     appearance_noise: float = 0.5
 
     def __post_init__(self):
-        if self.global_labels not in GLOBAL_LABELS:
+        if not isinstance(self.global_labels, str) or self.global_labels not in GLOBAL_LABELS:
             raise ValueError(f"perception knob global_labels {self.global_labels!r}, "
                              f"expected one of {list(GLOBAL_LABELS)}")
         for name, (lo, hi) in RANGES.items():
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) \
+            # any real number (numpy's too: np.float32(0.2)), kept as a Python float so
+            # that a set's info and the cache's comparison (cache.py) see plain numbers
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) \
                     or not lo <= float(v) <= hi:
                 raise ValueError(f"perception knob {name} {v!r}, expected a number in "
                                  f"[{lo:g}, {hi:g}]")
+            object.__setattr__(self, name, float(v))
 
     def changed(self) -> dict:
         """The knobs that differ from the defaults (for a set's info and the docs)."""
@@ -105,14 +109,19 @@ class Perception:
 
 def parse_knobs(items: list[str] | None) -> dict:
     """["global_noise=0.5", "global_labels=none", ...] -> {name: value}, values typed as
-    the Perception fields are; a one-line ValueError names a bad item."""
+    the Perception fields are; a one-line ValueError names a bad item, or a knob given
+    twice (the last was taken silently)."""
     fields = {f.name for f in dataclasses.fields(Perception)}
-    out = {}
+    out, given = {}, {}
     for item in items or ():
         name, sep, value = item.partition("=")
         if not sep or name not in fields:
             raise ValueError(f"perception knob {item!r}: expected NAME=VALUE with NAME one "
                              f"of {sorted(fields)}")
+        if name in given:
+            raise ValueError(f"perception knob {name} given twice ({given[name]!r}, "
+                             f"{item!r}): expected each knob once")
+        given[name] = item
         if name == "global_labels":
             out[name] = value
             continue

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import numbers
+
+import numpy as np
 
 from orgnav_jax.constants import FLOORPLAN_OFFSET, ROOM_TYPES, SPLITS
 from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
@@ -45,13 +48,28 @@ class ScenePreset:
         if not isinstance(self.perception, Perception):
             raise ValueError(f"preset {self.name!r}: perception must be a Perception, got "
                              f"{type(self.perception).__name__}")
-        if not 0.0 <= self.anchor_probability <= 1.0:
+        # numbers of any kind (numpy's too) are kept as Python ints and floats, so that a
+        # set's info is JSON and the cache's comparison sees plain numbers
+        if isinstance(self.anchor_probability, bool) or \
+                not isinstance(self.anchor_probability, numbers.Real) or \
+                not 0.0 <= self.anchor_probability <= 1.0:
             raise ValueError(f"preset {self.name!r}: anchor_probability "
                              f"{self.anchor_probability!r}, expected 0 <= p <= 1")
+        object.__setattr__(self, "anchor_probability", float(self.anchor_probability))
         limits = (20, 5, 5)
-        if len(self.rooms_per_type) != 3:
+        if not isinstance(self.rooms_per_type, (tuple, list)) or \
+                len(self.rooms_per_type) != 3 or not all(map(_integer, self.rooms_per_type)):
             raise ValueError(f"preset {self.name!r}: rooms_per_type must be (train, val, "
-                             f"test), got {self.rooms_per_type!r}")
+                             f"test) integers, got {self.rooms_per_type!r}")
+        object.__setattr__(self, "rooms_per_type", tuple(int(n) for n in self.rooms_per_type))
+        for field in ("global_dim", "appearance_dim", "num_rooms"):
+            value = getattr(self, field)
+            if value is None and field == "num_rooms":
+                continue
+            if not _integer(value):
+                raise ValueError(f"preset {self.name!r}: {field} {value!r}, expected an "
+                                 "integer")
+            object.__setattr__(self, field, int(value))
         for split, n, hi in zip(SPLITS, self.rooms_per_type, limits):
             if not 0 <= n <= hi:
                 raise ValueError(f"preset {self.name!r}: {n} {split} rooms per type, "
@@ -91,6 +109,11 @@ class ScenePreset:
         offered = [_round_robin(splits) for splits in per_type]
         chosen = set(_round_robin(offered)[:self.num_rooms])
         return [room for room in out if room in chosen]
+
+
+def _integer(value) -> bool:
+    """An integer of any kind (numpy's too), not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
 
 
 def _round_robin(lists: list[list]) -> list:
