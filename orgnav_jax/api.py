@@ -127,8 +127,16 @@ def is_results_json(path: str | Path) -> bool:
         and isinstance(doc.get("per_room_type"), dict)
 
 
+def run_scenes(loaded: LoadedPolicy, long: bool = False) -> str:
+    """The scenes a loaded policy belongs to: its scene preset's name, or its scenes
+    directory ('scene preset small' / 'scenes D' with long=True)."""
+    if loaded.scenes_dir:
+        return f"scenes {loaded.scenes_dir}" if long else str(loaded.scenes_dir)
+    return f"scene preset {loaded.scene_preset}" if long else loaded.scene_preset
+
+
 def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | None = None,
-             episodes: str | None = None, episode_seed: int = 0,
+             scene_preset: str | None = None, episodes: str | None = None, episode_seed: int = 0,
              per_room_type: int = EPISODES_PER_ROOM_TYPE, seed: int = 0,
              batch_size: int | None = None, out: str | Path | None = None,
              progress: bool = True) -> dict:
@@ -137,7 +145,10 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
     split, scenes, episode_file and out. The episodes are replayed from `episodes` or
     sampled with episode_seed (and saved beside `out`); the results go to `out` (default
     runs/eval/<run>-<split>.json for a run on its own scenes, else
-    runs/eval/<name>-<scenes>-<split>.json). Files that are not ours are never replaced."""
+    runs/eval/<name>-<scenes>-<split>.json). Files that are not ours are never replaced.
+    scene_preset: evaluate on this scene preset instead of the loaded policy's (a run on
+    scenes other than its own, as scenes_dir does; its feature widths must be the run's);
+    not with scenes_dir."""
     from tqdm import tqdm
 
     from orgnav_jax import env, evaluation
@@ -164,6 +175,13 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
     for name, value in (("--out", out), ("--scenes", scenes_dir), ("--episodes", episodes)):
         if value is not None and not str(value).strip():
             raise UserError(f"{name} is empty: expected a path")
+    if scene_preset is not None:
+        if scenes_dir is not None:
+            raise UserError(f"--scene-preset {scene_preset} and --scenes {scenes_dir}: give "
+                            "one (the scenes to evaluate on)")
+        if scene_preset != run_scenes(loaded):      # the run on scenes not its own
+            loaded = dataclasses.replace(loaded, scene_preset=scene_preset, scenes_dir=None,
+                                         from_run=False)
     own_scenes = loaded.from_run and scenes_dir is None
     scenes_dir = scenes_dir if scenes_dir is not None else loaded.scenes_dir
     tag = Path(scenes_dir).name if scenes_dir else loaded.scene_preset

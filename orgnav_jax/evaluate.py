@@ -3,8 +3,8 @@
     python -m orgnav_jax.evaluate --policy random --split test
     python -m orgnav_jax.evaluate --policy expert --split val --scene-preset tiny
     python -m orgnav_jax.evaluate --episodes runs/eval/episodes-small-test.json ...
-    python -m orgnav_jax.evaluate --checkpoint runs/small --split test
-    python -m orgnav_jax.evaluate --tpn runs/small/tpn --when all   # TPN-all
+    python -m orgnav_jax.evaluate --checkpoint runs/baseline-calibrated --split test
+    python -m orgnav_jax.evaluate --tpn runs/baseline-calibrated/tpn --when all   # TPN-all
     python -m orgnav_jax.evaluate --checkpoint runs/dsavn --split val --savn-act sample
     python -m orgnav_jax.evaluate --release-checkpoint model.dat --release-kind GraphModel \
         --scenes data/offline_import --split test     # the authors' trained weights
@@ -68,9 +68,10 @@ def parser() -> argparse.ArgumentParser:
                          "MetaMemoryGraphModel evaluates with the test-time updates of its "
                          "TPN head (the TPN options below apply; --tpn-lr 0: none)")
     ap.add_argument("--split", choices=("val", "test"), default="test")
-    ap.add_argument("--scene-preset", "--preset", dest="preset", default=DEFAULT_SCENE_PRESET,
-                    help=f"scene preset (built once, cached; default {DEFAULT_SCENE_PRESET}); "
-                         "--preset is the old name")
+    ap.add_argument("--scene-preset", "--preset", dest="preset", default=None,
+                    help=f"scene preset (built once, cached; default {DEFAULT_SCENE_PRESET}, "
+                         "with --checkpoint / --tpn the run's own; another one evaluates "
+                         "the run there, with a note); --preset is the old name")
     ap.add_argument("--scenes", metavar="DIR", help="a saved SceneSet directory instead")
     ap.add_argument("--episodes", metavar="FILE", help="replay this episode file")
     ap.add_argument("--episode-seed", type=int, default=0)
@@ -103,8 +104,13 @@ def main(argv: list[str] | None = None) -> dict:
                              release_kind=args.release_kind, savn_act=args.savn_act,
                              **tpn_overrides_from_args(args))
     if not (args.checkpoint or args.tpn):
-        loaded.scene_preset = args.preset
+        loaded.scene_preset = args.preset or DEFAULT_SCENE_PRESET
+    elif args.preset is not None and args.preset != api.run_scenes(loaded):
+        print(f"note: {args.checkpoint or args.tpn} was trained on "
+              f"{api.run_scenes(loaded, long=True)}; evaluating it on scene preset "
+              f"{args.preset}, as --scene-preset asks", file=sys.stderr, flush=True)
     result = api.evaluate(loaded, args.split, scenes_dir=args.scenes, episodes=args.episodes,
+                          scene_preset=args.preset,
                           episode_seed=args.episode_seed,
                           per_room_type=args.episodes_per_room_type, seed=args.seed,
                           batch_size=args.batch_size, out=args.out, progress=not args.quiet)

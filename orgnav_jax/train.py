@@ -2,15 +2,17 @@
 
     python -m orgnav_jax.train                               # baseline, calibrated benchmark
     python -m orgnav_jax.train --preset small --model we --run-dir runs/we
-    python -m orgnav_jax.train --run-dir runs/small --resume
-    python -m orgnav_jax.train --stage tpn --base runs/small   # stage 2: TPN
+    python -m orgnav_jax.train --run-dir runs/baseline-calibrated --resume
+    python -m orgnav_jax.train --stage tpn --base runs/baseline-calibrated   # stage 2: TPN
     python -m orgnav_jax.train --preset full      # ORG + IL, then its TPN: the full model
     python -m orgnav_jax.train --preset vtnet     # VTNet: pre-training, then A2C from it
     python -m orgnav_jax.train --stage pretrain --preset vtnet --run-dir runs/vt-pre
 
 With no arguments it builds (or reuses) the calibrated benchmark (the default scene
-preset), trains the Baseline for the default budget, evaluates the best-on-val checkpoint
-on the test split (250 episodes per room type) and prints the Table-1-style row. Every
+preset), trains the Baseline for the default budget in runs/baseline-calibrated,
+evaluates the best-on-val checkpoint on the test split (250 episodes per room type) and
+prints the Table-1-style row, `baseline-calibrated`. A run goes to runs/<preset>, with
+-<scenes> where --scene-preset or --scenes-dir is not the preset's own (runs/we-small). Every
 TrainConfig field is an option; see --help.
 
 `--preset vtnet` pre-trains VTNet's visual transformer on the expert's actions (a run in
@@ -46,7 +48,8 @@ from pathlib import Path
 from orgnav_jax import api, evaluate
 from orgnav_jax.errors import UserError, run_cli
 from orgnav_jax.training.config import (
-    BUDGETS, TRAIN_PRESETS, add_config_arguments, get_config, load_config, overrides_from_args)
+    BUDGETS, TRAIN_PRESETS, add_config_arguments, default_run_dir, get_config, load_config,
+    overrides_from_args)
 from orgnav_jax.training.run_dir import is_run_dir
 
 
@@ -98,7 +101,8 @@ DEFAULT_PRESET = "small"      # --preset when none is given (None: a resume keep
 def parser() -> argparse.ArgumentParser:
     ap = _parser("python -m orgnav_jax.train", "nav")
     ap.add_argument("--preset", default=None, choices=sorted(TRAIN_PRESETS) + sorted(TPN_PIPELINES),
-                    help=f"a training preset (default {DEFAULT_PRESET}); baseline_tpn and full "
+                    help=f"a training preset (default {DEFAULT_PRESET}: the Baseline, in "
+                         "runs/baseline-<scenes>); baseline_tpn and full "
                          "(ORG + IL + TPN) also train the TPN (stage 2) on the result; with "
                          "--resume it must agree with the run's saved config")
     ap.add_argument("--tpn-lr", type=float, default=None,
@@ -242,7 +246,7 @@ def nav_config(args, processes: int = 1):
         return cfg
     preset = args.preset or DEFAULT_PRESET
     if pipeline:
-        overrides.setdefault("run_dir", f"runs/{preset}")
+        overrides.setdefault("run_dir", default_run_dir(preset, overrides))
     return get_config(pipeline or preset, **overrides)
 
 
@@ -304,7 +308,8 @@ def main(argv: list[str] | None = None) -> dict:
     seeds = f", seeds {' '.join(map(str, args.seeds))} in one program" if args.seeds else ""
     shape = (f"SAVN, {cfg.num_envs} rows x {cfg.savn_segments} segments x {cfg.savn_steps} "
              "steps" if cfg.savn else f"{cfg.num_envs} envs x {cfg.rollout_len} steps")
-    announce(cfg, f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, {shape}, "
+    announce(cfg, f"run {cfg.run_dir}: model {cfg.model}, IL {cfg.il}, scenes "
+                  f"{cfg.scenes_dir or cfg.scene_preset}, {shape}, "
                   f"{cfg.total_env_steps:,} env steps{seeds}")
     if args.budget and primary():
         print(BUDGETS[args.budget].describe(), file=sys.stderr, flush=True)
@@ -349,7 +354,7 @@ def pretrain_configs(args, nav=None) -> list:
             if args.budget:
                 raise UserError("--budget sets the training budgets; pre-training's is "
                                 "--pretrain-samples")
-            run_dir = fields.pop("run_dir", f"{get_config(preset).run_dir}-pretrain")
+            run_dir = fields.pop("run_dir", f"{default_run_dir(preset, fields)}-pretrain")
             nav = get_config(preset, **fields)
         else:
             run_dir = f"{str(nav.run_dir).rstrip('/')}-pretrain"
@@ -397,7 +402,7 @@ def main_pretrain_pipeline(args) -> dict:
         raise UserError(f"--preset {args.preset} pre-trains first, in one process: run "
                         "--stage pretrain, then --pretrained PRE_RUN_DIR on several")
     fields = overrides_from_args(args)
-    run_dir = fields.get("run_dir", get_config(args.preset).run_dir)
+    run_dir = fields.get("run_dir", default_run_dir(args.preset, fields))
     first = seed_run_dir(run_dir, args.seeds[0]) if args.seeds else run_dir
     pre_dir = f"{str(run_dir).rstrip('/')}-pretrain"
     pre_first = seed_run_dir(pre_dir, args.seeds[0]) if args.seeds else pre_dir

@@ -425,3 +425,56 @@ def test_checkpoints_on_scenes_of_other_feature_widths_are_refused_before_a_mode
 def loop_runs():
     from orgnav_jax.training import runs
     return runs
+
+
+# round five (issue 67): runs made before the default scene preset changed ----------------
+
+def test_a_config_without_its_scene_preset_is_refused_not_read_as_todays_default(
+        tmp_path, half_run, cli_error):
+    """A config.json without scene_preset (the default was `small` when it was implicit)
+    was evaluated and resumed on today's default, `calibrated`, without a word."""
+    from orgnav_jax import evaluate
+    run = copy_of(half_run, tmp_path / "run")
+    doc = json.loads((run / "config.json").read_text())
+    del doc["scene_preset"]
+    (run / "config.json").write_text(json.dumps(doc))
+    before = snapshot(tmp_path)
+    want = (f"error: {run / 'config.json'}: field 'scene_preset' is missing: expected the "
+            "scene preset the run was trained on (this program writes it in every run's "
+            "config; the default was 'small' before 2026-12-05 and is 'calibrated' since): "
+            'add it, e.g. "scene_preset": "small"')
+    assert cli_error(evaluate.main, ["--checkpoint", run, "--split", "val", "--quiet",
+                                     "--out", tmp_path / "res.json"]) == want
+    assert cli_error(train_cli.main, ["--run-dir", run, "--resume", "--quiet",
+                                      "--no-test"]) == want
+    assert snapshot(tmp_path) == before
+
+
+def test_evaluate_a_run_on_another_scene_preset_says_so(tmp_path, half_run, tiny_scenes,
+                                                        tiny_dir, cli_error, capsys,
+                                                        monkeypatch):
+    """`evaluate --checkpoint RUN --scene-preset X` evaluated on the run's own scenes and
+    ignored X; it now evaluates on X (as --scenes does) with a note naming both, the
+    results record X; --scene-preset with --scenes is one line."""
+    from orgnav_jax import evaluate
+    from orgnav_jax import scenes as S
+    from orgnav_jax.scenes.synthetic import cache
+    monkeypatch.setenv("ORGNAV_CACHE", str(tmp_path / "cache"))
+    S.save(tiny_scenes, cache.cache_path("tiny", 0))      # preset tiny, without building it
+    run = copy_of(half_run, tmp_path / "run")
+    before = snapshot(run)
+    msg = cli_error(evaluate.main, ["--checkpoint", run, "--scene-preset", "tiny",
+                                    "--scenes", tiny_dir, "--quiet"])
+    assert msg == f"error: --scene-preset tiny and --scenes {tiny_dir}: give one (the " \
+                  "scenes to evaluate on)"
+    capsys.readouterr()
+    out = tmp_path / "res.json"
+    result = evaluate.main(["--checkpoint", str(run), "--scene-preset", "tiny", "--split",
+                            "val", "--episodes-per-room-type", "2", "--quiet", "--out",
+                            str(out)])
+    err = capsys.readouterr().err
+    assert f"note: {run} was trained on scenes {tiny_dir}; evaluating it on scene preset " \
+           "tiny, as --scene-preset asks" in err, err
+    assert result["scenes"] == "tiny" and json.loads(out.read_text())["scenes"] == "tiny"
+    assert snapshot(run) == before
+    cache.clear_loaded()

@@ -131,7 +131,7 @@ def test_presets_have_distinct_default_run_directories():
     from orgnav_jax.training.config import TRAIN_PRESETS, get_config
     dirs = {name: get_config(name).run_dir for name in TRAIN_PRESETS}
     assert len(set(dirs.values())) == len(dirs), dirs
-    assert dirs["small"] == "runs/small" and dirs["baseline"] == "runs/baseline"
+    assert dirs["small"] == "runs/baseline-calibrated" and dirs["baseline"] == "runs/baseline"
 
 
 # ------------------------------------------------------------------ the coordinator
@@ -218,3 +218,22 @@ def test_empty_or_negative_values_are_refused_not_dropped(tmp_path, cli_error):
                                   "--episodes-per-type", "-1"])
     assert "--episodes-per-type -1: expected an integer >= 0" in msg
     assert not (tmp_path / "o").exists() and not (tmp_path / "e").exists()
+
+
+def test_the_default_run_is_named_after_its_model_and_scenes():
+    """Issue 67: `python -m orgnav_jax.train` trained on the calibrated benchmark but
+    wrote runs/small and printed its row as `small`, the other scene preset's name. The
+    run directory (and the row, its name) says what it is; a preset on scenes other than
+    its own says which."""
+    from orgnav_jax import train as train_cli
+    from orgnav_jax.training.config import get_config
+    assert train_cli.nav_config(train_cli.parser().parse_args([])).run_dir == \
+        "runs/baseline-calibrated"
+    for argv, run_dir in ((["--scene-preset", "small"], "runs/baseline-small"),
+                          (["--preset", "we", "--scene-preset", "small"], "runs/we-small"),
+                          (["--preset", "we"], "runs/we"),
+                          (["--preset", "tiny"], "runs/tiny"),
+                          (["--preset", "full", "--scene-preset", "small"], "runs/full-small"),
+                          (["--scene-preset", "small", "--run-dir", "mine"], "mine")):
+        assert train_cli.nav_config(train_cli.parser().parse_args(argv)).run_dir == run_dir
+    assert get_config("tiny", scenes_dir="data/t4").run_dir == "runs/tiny-t4"

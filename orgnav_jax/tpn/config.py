@@ -1,7 +1,7 @@
 """TPN configuration: stage-2 training and the test-time update, one frozen dataclass.
 
-    cfg = get_tpn_config(base_dir="runs/small")     # defaults, run_dir base/tpn
-    cfg = load_tpn_config("runs/small/tpn")         # a stage-2 run's config
+    cfg = get_tpn_config(base_dir="runs/baseline-calibrated")     # defaults, run_dir base/tpn
+    cfg = load_tpn_config("runs/baseline-calibrated/tpn")         # a stage-2 run's config
 Every field is a command-line option (add_tpn_arguments: `--base DIR`, `--scope trunk`).
 """
 

@@ -27,7 +27,7 @@ in train mode, so dropout was active there and not in "w/o TPN". With it, a fres
 mask (the navigation model's rate) is drawn every step and used for the forward pass,
 the update and the action; without it the evaluation is deterministic.
 
-    policy, params, nav_cfg, tpn_cfg = load_tpn_policy("runs/small/tpn")
+    policy, params, nav_cfg, tpn_cfg = load_tpn_policy("runs/baseline-calibrated/tpn")
     evaluation.evaluate(policy, params, scenes, episodes)
 """
 

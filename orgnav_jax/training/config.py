@@ -2,8 +2,10 @@
 
     cfg = get_config("small", num_envs=128)        # a preset with fields replaced
 Every field is a command-line option (`--num-envs 128`, `--model org`); a preset's runs
-go to runs/<preset> unless --run-dir says otherwise. The machinery (version, ranges,
-checks, options) is shared with the TPN's config: training/config_fields.py.
+go to runs/<preset> (runs/<preset>-<scenes> on scenes not the preset's own; the default
+preset's to runs/baseline-calibrated: default_run_dir) unless --run-dir says otherwise.
+The machinery (version, ranges, checks, options) is shared with the TPN's config:
+training/config_fields.py.
 """
 
 from __future__ import annotations
@@ -80,9 +82,10 @@ DTYPES = get_args(DType)
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
-                             checkpoint_every_chunks=4, run_dir="runs/small")):
-    # + the run's bookkeeping, declared in config_fields.run_fields (these defaults; every
-    # preset's run_dir is runs/<preset>): updates_per_chunk, eval_every_chunks,
+                             checkpoint_every_chunks=4,
+                             run_dir=f"runs/baseline-{DEFAULT_SCENE_PRESET}")):
+    # + the run's bookkeeping, declared in config_fields.run_fields (these defaults; a
+    # preset's run_dir: default_run_dir): updates_per_chunk, eval_every_chunks,
     # eval_episodes_per_room_type, checkpoint_every_chunks, keep_checkpoints, seed, run_dir
     # data
     scene_preset: str = DEFAULT_SCENE_PRESET   # scene preset built and cached (orgnav_jax.scenes)
@@ -392,8 +395,26 @@ BUDGETS: dict[str, Budget] = {
 }
 
 
+def default_run_dir(preset: str, overrides: dict | None = None) -> str:
+    """Where a run of `preset` goes when no run_dir is given, named after what it is:
+    runs/<preset>, with -<scenes> where its scenes (the scene preset, or the scenes_dir
+    folder's name, in `overrides`) are not the preset's own (runs/we-small); the default
+    preset `small` (the Baseline at small widths; its name is also a scene preset's) names
+    its scenes always: runs/baseline-calibrated."""
+    overrides = overrides or {}
+    row = TRAIN_PRESETS.get(preset, {})
+    own = row.get("scene_preset", DEFAULT_SCENE_PRESET)
+    scenes = (Path(overrides["scenes_dir"]).name if overrides.get("scenes_dir")
+              else overrides.get("scene_preset", own))
+    if preset == "small":
+        return f"runs/baseline-{scenes}"
+    base = row.get("run_dir", f"runs/{preset}")
+    return base if scenes == own and not overrides.get("scenes_dir") else f"{base}-{scenes}"
+
+
 def get_config(preset: str = "small", **overrides) -> TrainConfig:
-    """A preset with fields replaced; clear errors for unknown presets or fields."""
+    """A preset with fields replaced; clear errors for unknown presets or fields. Without
+    a run_dir, the run goes to default_run_dir(preset, overrides)."""
     if preset not in TRAIN_PRESETS:
         raise ValueError(f"unknown training preset {preset!r}: expected one of "
                          f"{sorted(TRAIN_PRESETS)}")
@@ -402,8 +423,9 @@ def get_config(preset: str = "small", **overrides) -> TrainConfig:
     if bad:
         raise ValueError(f"unknown config field(s) {bad}; fields are {sorted(fields)}")
     fields = {**TRAIN_PRESETS[preset], **overrides}
+    run_dir = {} if "run_dir" in overrides else {"run_dir": default_run_dir(preset, overrides)}
     return TrainConfig(**{**TRAIN_PRESETS[preset], **OPTIM.get(fields.get("optim"), {}),
-                          **overrides}).validate()
+                          **run_dir, **overrides}).validate()
 
 
 def load_config(run_dir: str | Path) -> TrainConfig:
@@ -418,7 +440,17 @@ def load_config(run_dir: str | Path) -> TrainConfig:
                         5: {**V5_DEFAULTS, **V6_DEFAULTS, **V7_DEFAULTS, **V8_DEFAULTS},
                         6: {**V6_DEFAULTS, **V7_DEFAULTS, **V8_DEFAULTS},
                         7: V8_DEFAULTS},
-                       OLD_RENAMES, {v: V6_VALUES for v in (2, 3, 4, 5, 6)})
+                       OLD_RENAMES, {v: V6_VALUES for v in (2, 3, 4, 5, 6)},
+                       required={"scene_preset": SCENE_PRESET_MISSING})
+
+
+# Why a run's config must name its scene preset: the default changed from `small` to
+# `calibrated` (2026-12-05, commit ddb4013) within config version 9, so a config without
+# one (every config this program writes has it) cannot say which the run was trained on.
+SCENE_PRESET_MISSING = (
+    "expected the scene preset the run was trained on (this program writes it in every "
+    "run's config; the default was 'small' before 2026-12-05 and is 'calibrated' since): "
+    'add it, e.g. "scene_preset": "small"')
 
 
 def add_config_arguments(ap: argparse.ArgumentParser) -> None:

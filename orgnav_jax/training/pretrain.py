@@ -49,7 +49,7 @@ from orgnav_jax.errors import UserError
 from orgnav_jax.models import build_model, dropout_mask, model_inputs
 from orgnav_jax.models.vtnet import VTNetPretrain, is_visual, pretrain_init
 from orgnav_jax.training.checkpoints import RunCheckpoints
-from orgnav_jax.training.config import TrainConfig
+from orgnav_jax.training.config import SCENE_PRESET_MISSING, TrainConfig
 from orgnav_jax.training.config_fields import CONFIG_VERSION, READABLE_VERSIONS
 from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
@@ -101,7 +101,8 @@ class PretrainConfig(TrainConfig):
 def load_pretrain_config(run_dir: str | Path) -> PretrainConfig:
     """The PretrainConfig saved in a pre-training run directory (one-line errors)."""
     from orgnav_jax.training.run_dir import read_config
-    return read_config(run_dir, PretrainConfig, STAGE, READABLE_VERSIONS)
+    return read_config(run_dir, PretrainConfig, STAGE, READABLE_VERSIONS,
+                       required={"scene_preset": SCENE_PRESET_MISSING})
 
 
 @struct.dataclass

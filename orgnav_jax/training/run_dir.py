@@ -53,13 +53,15 @@ STAGES = {"nav": "training", "tpn": "TPN (stage 2)",   # the kinds of run, in wo
 def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int, ...],
                 upgrades: dict[int, dict] | None = None,
                 renames: dict[int, dict[str, str]] | None = None,
-                values: dict[int, dict[str, dict]] | None = None):
+                values: dict[int, dict[str, dict]] | None = None,
+                required: dict[str, str] | None = None):
     """config.json of a run directory -> cls(**fields).validate(), after checking that it
     is JSON, of this `stage`, of one of `versions` (upgrades[v]: the values of fields a
     version-v config lacks; renames[v]: old field name -> new; values[v][field]: old
-    value -> the value that means it now) with known field names,
-    every field's type and range checked (cls.validate: check_types, check_ranges);
-    one-line errors naming the file and the field."""
+    value -> the value that means it now) with known field names, the `required` fields
+    present (field -> why: a field whose default changed without a new version, so that
+    its absence says nothing), every field's type and range checked (cls.validate:
+    check_types, check_ranges); one-line errors naming the file and the field."""
     path = Path(run_dir) / CONFIG_FILE
     if not path.exists():
         raise FileNotFoundError(f"{path} not found: {run_dir} is not a {STAGES[stage]} run "
@@ -88,6 +90,9 @@ def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int
     bad = sorted(set(doc) - {f.name for f in dataclasses.fields(cls)})
     if bad:
         raise ValueError(f"{path}: unknown config field(s) {bad}")
+    for field, why in (required or {}).items():
+        if field not in doc:
+            raise ValueError(f"{path}: field {field!r} is missing: {why}")
     try:
         return cls(**doc).validate()
     except ValueError as err:      # "config field 'lr': ..." -> "<path>: config field ..."
