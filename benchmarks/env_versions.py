@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -37,6 +38,25 @@ def run_version(tree: Path, num_envs: list[int], repeats: int) -> dict[int, floa
     return {r["num_envs"]: r["steps_per_s"] for r in rows}
 
 
+def needed_modules() -> list[str]:
+    """The package modules env_throughput.py imports ('orgnav_jax/env.py', ...)."""
+    text = (TOP / "benchmarks" / "env_throughput.py").read_text()
+    names = re.findall(r"^from (orgnav_jax(?:\.\w+)*) import (\w+(?:, \w+)*)", text, re.M)
+    out = []
+    for module, items in names:
+        path = module.replace(".", "/")
+        out += [f"{path}/{item}" for item in items.split(", ")] if module == "orgnav_jax" \
+            else [path]
+    return out
+
+
+def in_commit(commit: str, module: str) -> bool:
+    """Whether `commit` holds `module` (a path without .py) as a file or a package."""
+    return any(subprocess.run(["git", "cat-file", "-e", f"{commit}:{module}{suffix}"],
+                              cwd=TOP, capture_output=True).returncode == 0
+               for suffix in (".py", "/__init__.py"))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("old", help="the commit to compare with (e.g. 4ca89d4)")
@@ -46,10 +66,22 @@ def main() -> None:
     args = ap.parse_args()
     if args.rounds < 1 or args.repeats < 1 or min(args.num_envs) < 1:
         ap.error("--rounds, --repeats and --num-envs must be >= 1")
-    commit = subprocess.run(["git", "rev-parse", "--short", args.old], cwd=TOP,
-                            capture_output=True, text=True)
+    # a commit (not a tree or a blob: `git worktree add` failed with a traceback) whose
+    # package has every module env_throughput.py imports (an older one ran it to an
+    # ImportError in the worktree), checked before the worktree is made
+    commit = subprocess.run(["git", "rev-parse", "--verify", "--quiet", "--short",
+                             f"{args.old}^{{commit}}"], cwd=TOP, capture_output=True,
+                            text=True)
     if commit.returncode != 0:
-        ap.error(f"{args.old!r} is not a commit of {TOP}")
+        kind = subprocess.run(["git", "cat-file", "-t", args.old], cwd=TOP,
+                              capture_output=True, text=True).stdout.strip()
+        ap.error(f"{args.old!r} {'is a ' + kind if kind else 'names nothing'} in {TOP}, "
+                 "expected a commit")
+    missing = [m.replace("/", ".") for m in needed_modules() if not in_commit(args.old, m)]
+    if missing:
+        ap.error(f"commit {commit.stdout.strip()} has no module {', '.join(missing)}: "
+                 "benchmarks/env_throughput.py needs them (the env and its scenes); expected "
+                 "a commit with the env")
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=TOP,
                           capture_output=True, text=True).stdout.strip()
     with tempfile.TemporaryDirectory(prefix="orgnav-env-versions-") as work:

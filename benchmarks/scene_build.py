@@ -46,10 +46,21 @@ def main() -> None:
                     help="rooms per type per split (default: the preset's, 20 5 5)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    overrides = {"rooms_per_type": tuple(args.rooms)} if args.rooms else {}
+    if not 0 <= args.seed <= 2 ** 31 - 1:
+        ap.error(f"--seed {args.seed}: expected an integer 0 <= seed <= 2,147,483,647")
+    for name in args.presets:     # every preset before any is built (a traceback after)
+        try:
+            preset = scenes.get_preset(name, **overrides)
+        except ValueError as err:
+            ap.error(str(err))
+        if preset.raw:
+            ap.error(f"preset {name!r} stores raw features and is written to disk room by "
+                     "room, not built in memory: time `python -m orgnav_jax.scenes build "
+                     f"--preset {name} --out DIR` (it prints its build time)")
 
     rows = []
     for name in args.presets:
-        overrides = {"rooms_per_type": tuple(args.rooms)} if args.rooms else {}
         t0 = time.perf_counter()
         s = scenes.build(name, args.seed, **overrides)
         build_s = time.perf_counter() - t0

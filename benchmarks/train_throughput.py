@@ -127,7 +127,7 @@ from orgnav_jax.scenes import load_or_build  # noqa: E402
 from orgnav_jax.scenes.synthetic.builder import feature_bases  # noqa: E402
 from orgnav_jax.scenes.synthetic.presets import get_preset  # noqa: E402
 from orgnav_jax.training import scale  # noqa: E402
-from orgnav_jax.training.config import TABLE_ROWS, get_config  # noqa: E402
+from orgnav_jax.training.config import TABLE_ROWS, get_config, load_config  # noqa: E402
 from orgnav_jax.training.update import (  # noqa: E402
     init_runner, make_optimizer, make_train_chunk)
 
@@ -464,11 +464,14 @@ def main() -> None:
     bad = sorted(set(args.models) - set(ENCODERS))
     if bad:
         ap.error(f"unknown model(s) {bad}: expected some of {sorted(ENCODERS)}")
-    for p in args.presets:
-        try:
-            get_config(p)
-        except ValueError as e:
-            ap.error(str(e))
+    shape = dict(updates_per_chunk=args.updates_per_chunk,
+                 **({"rollout_len": args.rollout_len} if args.rollout_len else {}))
+    for p in args.presets:      # every row's config before any work (a traceback after)
+        for n in args.num_envs:
+            try:
+                get_config(p, num_envs=n, **shape)
+            except ValueError as e:
+                ap.error(str(e))
     if min(args.num_envs) < 1 or args.updates_per_chunk < 1 or args.repeats < 1 \
             or min(args.devices) < 1 or min(args.seeds) < 1:
         ap.error("--num-envs, --updates-per-chunk, --repeats, --devices and --seeds must "
@@ -478,6 +481,12 @@ def main() -> None:
     for run in args.params_from:
         if not (Path(run) / "config.json").is_file():
             ap.error(f"--params-from {run}: no config.json (not a training run directory)")
+        try:
+            saved = load_config(run)
+            for n in args.num_envs:
+                dataclasses.replace(saved, savn=False, num_envs=n, **shape).validate()
+        except ValueError as e:
+            ap.error(f"--params-from {run}: {e}")
     for d in args.devices:
         if any(n % d for n in args.num_envs):
             ap.error(f"--num-envs {args.num_envs} must divide by every --devices ({d})")

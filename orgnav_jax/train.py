@@ -85,7 +85,8 @@ def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
 
 STAGES = ("nav", "tpn", "pretrain")
 # options that may go with --resume --run-dir alone (the rest come from config.json)
-RESUME_OPTIONS = {"run_dir", "total_env_steps", "scenes_dir", "devices", "pretrained"}
+RESUME_OPTIONS = {"run_dir", "total_env_steps", "scenes_dir", "devices", "pretrained",
+                  "word_vectors"}     # (a moved file: its vectors must be the run's)
 RESUME_PRETRAIN_OPTIONS = {"run_dir", "pretrain_samples", "scenes_dir", "devices"}
 RESUME_TPN_OPTIONS = {"run_dir", "total_episodes", "base_dir"}
 

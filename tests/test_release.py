@@ -319,6 +319,29 @@ def test_a_damaged_or_misplaced_checkpoint_file_is_one_line_naming_it(tmp_path):
     assert set(release.read_checkpoint(whole)) == set(state_dict("GraphModel"))
 
 
+def test_an_upper_case_npz_is_an_npz_and_a_zero_width_layer_is_one_line(tmp_path):
+    """Issue 67: a release checkpoint named `.NPZ` was read as a torch file; a state dict
+    with a zero-width LSTM (or another zero-width layer) ended in a ZeroDivisionError in
+    flax's init."""
+    upper = tmp_path / "MODEL.NPZ"
+    with open(upper, "wb") as f:            # (np.savez would add .npz)
+        np.savez(f, **state_dict("GraphModel"))
+    assert set(release.read_checkpoint(upper)) == set(state_dict("GraphModel"))
+    global H, F
+    for name, change, entry, what in (("H", 0, "lstm.weight_hh_l0", r"\(0, 0\): 0 LSTM units"),
+                                      ("F", 0, "conv1.weight", r"\(0, 8, 1, 1\): 0 output "
+                                                               r"channels")):
+        kept = globals()[name]
+        try:
+            globals()[name] = change
+            sd = state_dict("BaseModel")
+        finally:
+            H, F = (kept, F) if name == "H" else (H, kept)
+        with pytest.raises(release.ReleaseError, match=rf"state dict: '{entry}' has shape "
+                                                       rf"{what}, expected at least 1"):
+            release.load("BaseModel", sd)
+
+
 @pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf, 1e39])
 def test_non_finite_weights_are_refused_naming_the_entry(value):
     """nan / inf (or a float64 beyond float32) evaluated to a constant action at 0%."""

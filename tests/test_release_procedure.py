@@ -307,3 +307,41 @@ def test_a_run_keeps_the_sha256_of_its_word_vectors_and_refuses_others(tmp_path,
     assert message in cli_error(evaluate.main, ["--checkpoint", run, "--quiet"])
     assert message in cli_error(train.main, ["--run-dir", run, "--resume", "--quiet"])
     assert sorted(p.name for p in run.iterdir()) == before
+
+
+def test_the_same_word_vectors_at_a_new_path_resume_the_run(tmp_path, tiny_dir, cli_error):
+    """Issue 67: a run whose word-vector file was moved was refused on resume with the
+    file's new path (`--word-vectors` was no resume option, and the path was compared as
+    a field) although its vectors (their sha256) were the run's. The new path is taken,
+    like a moved --scenes-dir, where the run keeps the sha256; other vectors there are
+    refused; a run that keeps no sha256 (older) still compares the path."""
+    from orgnav_jax import train
+    from orgnav_jax.training.run_dir import check_run_dir
+    from orgnav_jax.training.runs import keep_word_vectors
+    old, new = tmp_path / "glove.txt", tmp_path / "moved" / "glove.txt"
+    glove_file(old)
+    run = tmp_path / "run"
+    run.mkdir()
+    kept = keep_word_vectors(get_config("we", word_vectors=str(old), scenes_dir=tiny_dir,
+                                        run_dir=str(run), **WIDTHS))
+    (run / "config.json").write_text(kept.to_json())
+    new.parent.mkdir()
+    old.rename(new)
+    cfg = train.nav_config(train.parser().parse_args(
+        ["--run-dir", str(run), "--resume", "--word-vectors", str(new)]))
+    assert cfg.word_vectors == str(new)
+    cfg = keep_word_vectors(cfg, resume=True)
+    assert cfg.word_vectors_sha256 == kept.word_vectors_sha256
+    check_run_dir(run, cfg, True, load_config)          # the same run: no difference
+    lines = new.read_text().splitlines()
+    new.write_text("\n".join("book 1 2 3 4 5" if line.startswith("book ") else line
+                             for line in lines) + "\n")
+    before = sorted(p.name for p in run.iterdir())
+    assert f"word vectors {new}: not the vectors of the run {run}" in cli_error(
+        train.main, ["--run-dir", run, "--resume", "--word-vectors", new, "--quiet"])
+    assert sorted(p.name for p in run.iterdir()) == before
+    unkept = dataclasses.replace(kept, word_vectors_sha256=None)
+    (run / "config.json").write_text(unkept.to_json())
+    with pytest.raises(ValueError, match=r"differs from the requested config \(word_vectors: "):
+        check_run_dir(run, dataclasses.replace(cfg, word_vectors_sha256=None), True,
+                      load_config)

@@ -218,6 +218,12 @@ def load(kind: str, state_dict: dict) -> ReleaseNet:
                            f"{action['kernel'].shape[1]}: expected {NUM_CATEGORIES} "
                            "categories (the release's, and every scene set's)")
     H = _get(sd, "lstm.weight_hh_l0", 2).shape[1]
+    for name, n, what in (("conv1.weight", G, "input channels (the scenes' global_dim)"),
+                          ("conv1.weight", glob, "output channels"),
+                          ("embed_action.weight", action["kernel"].shape[1], "outputs"),
+                          ("pointwise.weight", fuse, "output channels"),
+                          ("lstm.weight_hh_l0", H, "LSTM units")):
+        _nonzero(sd, name, n, what)     # (a zero width divided by zero in flax's init)
     critic_1 = _dense(sd, "critic_linear_1", n_in=H, n_out=CRITIC_HIDDEN)
     trunk_params = {
         "global_1x1": conv1, "action_dense": action, "fuse_1x1": pointwise,
@@ -232,6 +238,7 @@ def load(kind: str, state_dict: dict) -> ReleaseNet:
         enc_params = {"to_map": to_map}
     else:
         hidden = _dense(sd, "graph_detection_feature.0")
+        _nonzero(sd, "graph_detection_feature.0.weight", hidden["kernel"].shape[1], "outputs")
         d = hidden["kernel"].shape[0] - 6
         enc_params = {"hidden": hidden, "to_map": _dense(
             sd, "graph_detection_feature.2", n_in=hidden["kernel"].shape[1], n_out=CELLS)}
@@ -253,6 +260,13 @@ def load(kind: str, state_dict: dict) -> ReleaseNet:
         tpn, tpn_params = _tpn(sd, H)
         net = dataclasses.replace(net, tpn=tpn, tpn_params=tpn_params)
     return net
+
+
+def _nonzero(sd: dict, name: str, n: int, what: str) -> None:
+    """ReleaseError naming `name` when a width read from it is 0."""
+    if n < 1:
+        raise ReleaseError(f"state dict: {name!r} has shape {np.shape(sd[name])}: 0 {what}, "
+                           "expected at least 1 (a layer of zero width)")
 
 
 def _check_finite(sd: dict) -> None:
@@ -340,7 +354,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, np.ndarray]:
     if os.path.getsize(path) == 0:
         raise ReleaseError(f"{path}: an empty file (0 bytes; an interrupted download?), "
                            f"{want}")
-    if path.endswith(".npz"):
+    if path.lower().endswith(".npz"):      # (.NPZ too: it was read as a torch file)
         try:
             z = np.load(path, allow_pickle=False)
             if not isinstance(z, np.lib.npyio.NpzFile):

@@ -198,8 +198,11 @@ def _mtime(path: Path) -> float:
 
 def config_differences(saved, wanted) -> list[str]:
     """Fields (other than budget, locations and placement) where two configs differ, as
-    'f: a -> b'."""
+    'f: a -> b'. The word-vector file is a location too where the saved run keeps the
+    sha256 of its vectors (compared as a field: the same vectors at another path)."""
     skip = set(BUDGET_FIELDS) | set(LOCATION_FIELDS) | set(PLACEMENT_FIELDS)
+    if getattr(saved, "word_vectors_sha256", None) is not None:
+        skip.add("word_vectors")
     return [f"{f.name}: {getattr(saved, f.name)!r} -> {getattr(wanted, f.name)!r}"
             for f in dataclasses.fields(saved)
             if f.name not in skip and getattr(saved, f.name) != getattr(wanted, f.name)]
