@@ -79,9 +79,17 @@ def load_or_build(preset: str = DEFAULT_SCENE_PRESET, seed: int = 0,
     if why is not None:
         print(f"note: the cached scene set {path} {why}: rebuilding it in place "
               f"(${CACHE_VARIABLE} is the cache directory)", file=sys.stderr, flush=True)
+    seen = _identity(path)
     scenes = build(preset, seed, progress=progress)
-    if damaged:
-        remove_own_set(path)     # a damaged entry of ours (checked: only our files)
+    if damaged and _identity(path) == seen:   # (not rebuilt by another process meanwhile)
+        # a damaged entry of ours (checked: only our files), moved aside, then removed
+        aside = path.with_name(f".{path.name}.damaged-{os.getpid()}")
+        try:
+            path.rename(aside)
+        except FileNotFoundError:
+            pass
+        else:
+            remove_own_set(aside)
     # never replaces a set another process saved meanwhile (it may be reading it); a set
     # of another definition is replaced atomically (processes reading it keep their maps)
     save(scenes, path, replace=why is not None and not damaged)
