@@ -26,14 +26,20 @@ relative difference max|ours - release| / max|release| over all steps is reporte
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
+
+# This file runs in two Pythons: the release's side (--torch) in one with torch that may
+# lack jax and orgnav_jax, the comparison in this project's. Only the standard library
+# and numpy are imported here; each side imports its own inside its functions.
 
 ROOT = Path(__file__).resolve().parents[1]
 MIRROR = os.environ.get("PARITY_MIRROR",
@@ -43,14 +49,20 @@ TOOLS = ROOT.parent / "shared" / "tools" / "parity"     # its check.py imports t
 H, A = 512, 6
 
 
+def parity_tool():
+    """The shared parity tool's check.py (TOOLS), loaded from its file."""
+    spec = importlib.util.spec_from_file_location("parity_check", TOOLS / "check.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def torch_side(out: str, episodes: int, steps: int, seed: int, soft: bool, mirror: str):
-    import torch
-    sys.path.insert(0, str(TOOLS))
-    from check import import_release          # git show the release's files, stub PIL
+    import torch                                    # (the release's side has torch)
     tmp = tempfile.mkdtemp()
-    models, _, commit = import_release(mirror, Path(tmp))
-    from models.metamemorygraphmodel import MetaMemoryGraphModel
-    from types import SimpleNamespace
+    # git show the release's files, stub PIL; its `models` package importable after
+    models, _, commit = parity_tool().import_release(mirror, Path(tmp))
+    from models.metamemorygraphmodel import MetaMemoryGraphModel  # (the release's)
     args = SimpleNamespace(action_space=A, num_category=22, hidden_state_sz=H, multi_heads=1,
                            dropout_rate=0.25)
     torch.manual_seed(seed)
@@ -105,9 +117,9 @@ def torch_side(out: str, episodes: int, steps: int, seed: int, soft: bool, mirro
 
 def mutants(net, variables, xs, pr, meta):
     """Sensitivity: the worst relative difference of some wrong heads (each should fail)."""
-    import flax.linen as nn
-    import jax
-    from orgnav_jax.models import tpn_net as tpn
+    import flax.linen as nn                         # (this project's side only: see the top)
+    import jax                                      # (this project's side only)
+    from orgnav_jax.models import tpn_net as tpn    # (this project's side only)
     E, T = xs.shape[:2]
     valid = np.ones((E, T), bool)
     scale = np.abs(meta).max()
@@ -129,9 +141,9 @@ def mutants(net, variables, xs, pr, meta):
 
 
 def jax_side(npz: str, tol: float) -> int:
-    import jax
-    from orgnav_jax.models import release
-    from orgnav_jax.models import tpn_net as tpn
+    import jax                                      # (this project's side only: see the top)
+    from orgnav_jax.models import release           # (this project's side only)
+    from orgnav_jax.models import tpn_net as tpn    # (this project's side only)
     d = np.load(npz)
     sd = {k[3:]: d[k] for k in d.files if k.startswith("sd:")}
     xs, pr, meta = d["xs"], d["probs"], d["meta"]
@@ -173,7 +185,7 @@ def jax_side(npz: str, tol: float) -> int:
 
 def check_torch_python(python: str) -> None:
     """`python` runs and imports torch; UserError naming it otherwise."""
-    from orgnav_jax.errors import UserError
+    from orgnav_jax.errors import UserError         # (this project's side only: see the top)
     found = shutil.which(python)
     if found is None:
         raise UserError(f"--torch-python {python}: no such executable (expected a Python "
@@ -201,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.torch:
         return torch_side(a.torch, a.episodes, a.steps, a.seed, a.soft, a.mirror)
-    from orgnav_jax.errors import UserError
+    from orgnav_jax.errors import UserError         # (this project's side only: see the top)
     if not Path(a.mirror).is_dir() or subprocess.run(
             ["git", "-C", a.mirror, "rev-parse", "HEAD"], capture_output=True).returncode:
         raise UserError(f"--mirror {a.mirror}: no git mirror of the release there: fetch "
@@ -226,5 +238,5 @@ def main(argv: list[str] | None = None) -> int:
 if __name__ == "__main__":
     if "--torch" in sys.argv:     # the release's side: a Python with torch, maybe no orgnav_jax
         sys.exit(main())
-    from orgnav_jax.errors import run_cli
+    from orgnav_jax.errors import run_cli           # (this project's side only: see the top)
     sys.exit(run_cli(main))

@@ -26,11 +26,12 @@ import sys
 from pathlib import Path
 
 from orgnav_jax import api
-from orgnav_jax.errors import UserError, read_json, read_number, read_object, run_cli
+from orgnav_jax.errors import UserError, read_json, read_object, run_cli
 from orgnav_jax.safe_write import check_output_file, write_text_atomic
+from orgnav_jax.tables.sweeps import TPN_SWEEP_KEYS, read_tpn_sweep
+from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config
 
 SWEEP = "a TPN learning-rate sweep record of experiments/tpn_lr_sweep.py"
-SWEEP_KEYS = ("tpn_dir", "split", "scope", "results")
 
 
 def is_sweep_json(path: str | Path) -> bool:
@@ -39,7 +40,7 @@ def is_sweep_json(path: str | Path) -> bool:
         doc = json.loads(Path(path).read_bytes().decode("utf-8"))
     except (OSError, ValueError, RecursionError):
         return False
-    return isinstance(doc, dict) and set(SWEEP_KEYS) <= set(doc) and \
+    return isinstance(doc, dict) and set(TPN_SWEEP_KEYS) <= set(doc) and \
         isinstance(doc["results"], dict)
 
 
@@ -63,13 +64,7 @@ def done_before(out: Path, tpn_dir: str, split: str, scope: str) -> dict[str, di
         raise UserError(f"--out {out}: the record of another sweep (run {theirs[0]}, split "
                         f"{theirs[1]}, scope {theirs[2]}), not of {tpn_dir} (split {split}, "
                         f"scope {scope}); it is left untouched: choose another --out")
-    results = read_object(doc["results"], f"{out}: field 'results'")
-    for lr, overall in results.items():
-        where = f"{out}: results[{lr!r}]"
-        read_object(overall, where)
-        for metric in ("success", "spl"):
-            read_number(overall, metric, where)
-    return results
+    return read_tpn_sweep(out)             # its results, each read through the typed reader
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,7 +75,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--split", default="val", choices=("train", "val", "test"))
     ap.add_argument("--out", required=True, help="the sweep's JSON record")
     args = ap.parse_args(argv)
-    from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config
     if not args.out.strip():
         raise UserError("--out is empty: expected a path")
     saved = load_tpn_config(args.tpn_dir)     # a missing or other run: one line naming it

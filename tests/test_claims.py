@@ -1,4 +1,6 @@
-"""experiments/claims.py: paired statistics, verdicts and --check on a hand-made table."""
+"""The tables library (orgnav_jax/tables): paired statistics, verdicts, the claims and
+--check on a hand-made table; and the experiments/ command lines over it (claims.py,
+run_table.py, the sweeps, the pages of the superseded investigations)."""
 
 from __future__ import annotations
 
@@ -12,10 +14,16 @@ import numpy as np
 import pytest
 from helpers import EXPERIMENTS, experiment_script
 
+from orgnav_jax.tables import (adjacency, before_parity, layout, provenance, rows, runs, spec,
+                               stats, table_files)
+from orgnav_jax.tables import claims as claims_lib
+
+BEFORE_PARITY = EXPERIMENTS / "results" / "before_parity"
+
 
 @pytest.fixture(scope="module")
 def claims():
-    sys.path.insert(0, str(EXPERIMENTS))
+    """experiments/claims.py, the command line."""
     return experiment_script("claims")
 
 
@@ -55,28 +63,55 @@ def table_dir(tmp_path):
     return tmp_path
 
 
-def test_statistics_verdicts_and_intervals(claims):
-    from scipy import stats
+def test_statistics_verdicts_and_intervals():
+    from scipy import stats as sp
     d = np.array([10.5, -3.0, -2.5])
-    st = claims.statistics(d, 1)
+    st = stats.statistics(d, 1)
     assert st["verdict"] == "holds on average (1 of 3 seeds)"
     assert st["std"] == pytest.approx(d.std(ddof=1))            # the sample std
-    half = stats.t.ppf(0.975, 2) * d.std(ddof=1) / np.sqrt(3)
+    half = sp.t.ppf(0.975, 2) * d.std(ddof=1) / np.sqrt(3)
     assert st["interval"] == pytest.approx((d.mean() - half, d.mean() + half))
-    assert st["p"] == pytest.approx(stats.ttest_1samp(d, 0, alternative="greater").pvalue)
+    assert st["p"] == pytest.approx(sp.ttest_1samp(d, 0, alternative="greater").pvalue)
     assert not st["excludes_0"]
-    assert claims.statistics(np.array([2.0, 3.0, 2.5]), 1)["verdict"] == "holds in every seed"
-    assert claims.statistics(np.array([2.0, 3.0, 2.5]), 1)["excludes_0"]
-    assert claims.statistics(np.array([2.0, 3.0, 2.5]), -1)["verdict"] == "does not hold"
-    assert claims.statistics(np.array([-2.0, -3.0]), -1)["verdict"] == "holds in every seed"
+    assert stats.statistics(np.array([2.0, 3.0, 2.5]), 1)["verdict"] == "holds in every seed"
+    assert stats.statistics(np.array([2.0, 3.0, 2.5]), 1)["excludes_0"]
+    assert stats.statistics(np.array([2.0, 3.0, 2.5]), -1)["verdict"] == "does not hold"
+    assert stats.statistics(np.array([-2.0, -3.0]), -1)["verdict"] == "holds in every seed"
+    # one seed: no spread, no interval, no test; the spread of a table is the sample std
+    one = stats.statistics(np.array([1.5]), 1)
+    assert one["std"] is None and one["interval"] is None and one["p"] is None
+    assert stats.mean_std([1.0, 2.0, 4.0]) == f"2.3 ± {np.std([1.0, 2.0, 4.0], ddof=1):.1f}"
+    assert stats.mean_std([3.0]) == "3.0 ± 0.0"
 
 
-def test_predictions_are_claims_of_calibrated_tables_only(claims):
+def test_a_row_name_is_taken_apart_once():
+    from orgnav_jax.train import PRETRAIN_PIPELINES
+    row = rows.parse_row("org_il+tpn_all@1e-4")
+    assert (row.base, row.variant, row.lr, row.is_tpn) == ("org_il", "tpn_all", "1e-4", True)
+    assert row.name == "org_il+tpn_all@1e-4" and row.tpn_tag == "tpn_all@1e-4"
+    assert row.test_time() == {"when": "all", "tpn_lr": 1e-4}
+    assert rows.parse_row("baseline+tpn").test_time() == {}
+    assert rows.parse_row("random") == rows.Row("random")
+    for bad, match in (("baseline@1e-3", "unknown row"), ("nope", "unknown row"),
+                       ("random+tpn", "unknown row"), ("org+tpn@fast", "unknown row"),
+                       ("org+tpn@-1", "unknown row"), ("dsavn+tpn", "cannot be a TPN base")):
+        with pytest.raises(ValueError, match=match):
+            rows.parse_row(bad)
+    assert rows.lr_tag(["baseline", "org+tpn@1e-4", "org+tpn_all@1e-2"]) == "1e-4"
+    assert rows.lr_tag(["baseline"]) == "1e-3"
+    assert rows.PRETRAIN_ROWS == PRETRAIN_PIPELINES       # the training CLI's list
+    assert layout.results_path(Path("T"), "org_il+tpn_all@1e-3", 3) == \
+        Path("T/runs/org_il-s3/tpn/test_tpn_all@1e-3.json")
+    assert layout.results_path(Path("T"), "vtnet", 0) == \
+        Path("T/runs/vtnet-s0/test_results.json")
+
+
+def test_predictions_are_claims_of_calibrated_tables_only():
     spec = lambda preset, rows: {"rows": rows, "config": {"scene_preset": preset}}
-    names = lambda s: [c[0] for c in claims.claims("1e-4", s)]
+    names = lambda s: [c[0] for c in claims_lib.claims("1e-4", s)]
     calibrated = names(spec("calibrated", ["baseline", "we", "dsp"]))
     assert "full model > Baseline (paper +12.9)" in calibrated and "D-SP > WE" in calibrated
-    assert ("org_il+tpn@1e-4", "baseline") in [c[1:3] for c in claims.claims(
+    assert ("org_il+tpn@1e-4", "baseline") in [c[1:3] for c in claims_lib.claims(
         "1e-4", spec("calibrated", ["baseline"]))]
     for other in (spec("small", ["baseline", "we", "dsp"]), None):
         assert not {"full model > Baseline (paper +12.9)", "D-SP > WE"} & set(names(other))
@@ -96,9 +131,9 @@ def test_claims_table_check_and_tampering(claims, table_dir, capsys):
     short = capsys.readouterr().out
     assert "| IL > Baseline | 3 | +10.0 [" in short and "ORG + IL > ORG" not in short
     # the bootstrap interval: over seeds and episodes, around the mean difference
-    _, results, episodes = claims.read_table_dir(table_dir)
-    lo, hi = claims.bootstrap_interval(episodes, "il", "baseline", ["0", "1", "2"],
-                                       "success")
+    _, results, episodes = runs.read_table_dir(table_dir)
+    lo, hi = stats.bootstrap_interval(episodes, "il", "baseline", ["0", "1", "2"],
+                                      "success")
     assert lo < 10.0 < hi and hi - lo < 20
     # --check agrees, then fails on an edited table and on a tampered run
     assert claims.main(["--check", str(table_dir)]) == 0
@@ -163,7 +198,7 @@ def test_provenance_table_is_generated_from_the_runs_records(claims, table_dir, 
             in lines), text
     assert "| il | 2 | trained; tested | bbbbbbb | no | gpu NVIDIA H200 |" in text
     assert "| il | 0-1 | no provenance.json | - | - |" in text
-    assert claims.seed_ranges(["0", "1", "2", "4", "6", "7"]) == "0-2, 4, 6-7"
+    assert provenance.seed_ranges(["0", "1", "2", "4", "6", "7"]) == "0-2, 4, 6-7"
     capsys.readouterr()
     assert claims.main(["--check", str(table_dir)]) == 0
     assert "provenance.md agree" in capsys.readouterr().out
@@ -175,14 +210,14 @@ def test_provenance_table_is_generated_from_the_runs_records(claims, table_dir, 
     assert claims.main(["--check", str(table_dir)]) == 0
 
 
-def test_per_category_groups_and_table(claims, table_dir):
-    groups = claims.category_groups()
+def test_per_category_groups_and_table(table_dir):
+    groups = claims_lib.category_groups()
     assert "Toaster" in groups["anchored"] and "Laptop" in groups["anchored"]
     assert "StoveBurner" in groups["anchors"] and "Television" in groups["anchors"]
     assert "Fridge" in groups["others"]
     assert sorted(sum(groups.values(), [])) == sorted(__import__(
         "orgnav_jax.constants", fromlist=["CATEGORIES"]).CATEGORIES)
-    text = claims.per_category(table_dir, "il", "baseline")
+    text = claims_lib.per_category(table_dir, "il", "baseline")
     assert "| anchored | **all anchored** |" in text and "| others | Fridge |" in text
     # the groups' rates are over the episodes of their categories: all groups together
     # give the overall difference (+10 points in every seed for il vs baseline)
@@ -190,21 +225,17 @@ def test_per_category_groups_and_table(claims, table_dir):
 
 
 def test_run_table_spec_is_checked(tmp_path):
-    sys.path.insert(0, str(EXPERIMENTS))
-    import run_table
-    spec = run_table.read_spec(EXPERIMENTS / "tables" / "table_5m.json")
-    assert spec["seeds"] == [0, 1, 2, 3, 4] and "random" in spec["rows"]
-    assert run_table.results_path(Path("T"), "org_il+tpn_all@1e-3", 3) == \
-        Path("T/runs/org_il-s3/tpn/test_tpn_all@1e-3.json")
+    good = spec.read_spec(EXPERIMENTS / "tables" / "table_5m.json")
+    assert good["seeds"] == [0, 1, 2, 3, 4] and "random" in good["rows"]
     for change, match in (({"rows": ["nope"]}, "field 'rows': unknown row 'nope'"),
                           ({"seeds": [-1]}, "field 'seeds'"),
                           ({"config": {"lr": -1.0}}, "'lr'"),
                           ({"extra": 1}, r"unknown field\(s\) \['extra'\]"),
                           ({"population": "yes"}, "field 'population' is not a bool")):
         bad = tmp_path / "spec.json"
-        bad.write_text(json.dumps(dict(spec, **change)))
+        bad.write_text(json.dumps(dict(good, **change)))
         with pytest.raises(ValueError, match=match):
-            run_table.read_spec(bad)
+            spec.read_spec(bad)
 
 
 def test_provenance_counts_code_changes_not_the_tables_own_files(tmp_path, monkeypatch):
@@ -212,8 +243,6 @@ def test_provenance_counts_code_changes_not_the_tables_own_files(tmp_path, monke
     files a running campaign rewrites (experiments/results/) nor for a file mode lost in a
     copy; ORGNAV_CODE names the code of a copy; "device" is what JAX runs on."""
     import subprocess
-    sys.path.insert(0, str(EXPERIMENTS))
-    import run_table
     git = lambda *a: subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t",
                                      *a], cwd=tmp_path, check=True, capture_output=True)
     for rel in ("orgnav_jax/x.py", "experiments/run.py", "experiments/results/t/table.md"):
@@ -222,20 +251,20 @@ def test_provenance_counts_code_changes_not_the_tables_own_files(tmp_path, monke
     git("init", "-q")
     git("add", ".")
     git("commit", "-qm", "c")
-    assert run_table.provenance(tmp_path)["uncommitted_changes"] is False
+    assert provenance.provenance(tmp_path)["uncommitted_changes"] is False
     (tmp_path / "experiments/results/t/table.md").write_text("b\n")
-    assert run_table.provenance(tmp_path)["uncommitted_changes"] is False
+    assert provenance.provenance(tmp_path)["uncommitted_changes"] is False
     (tmp_path / "experiments/run.py").chmod(0o755)                 # a mode, not code
-    assert run_table.provenance(tmp_path)["uncommitted_changes"] is False
+    assert provenance.provenance(tmp_path)["uncommitted_changes"] is False
     (tmp_path / "experiments/run.py").write_text("b\n")
-    p = run_table.provenance(tmp_path)
+    p = provenance.provenance(tmp_path)
     assert p["uncommitted_changes"] is True and len(p["code"]) == 40
     assert p["device"].startswith("cpu ")
     monkeypatch.setenv("ORGNAV_CODE", "3c69e07")
-    assert run_table.provenance(tmp_path)["code"] == "3c69e07"
+    assert provenance.provenance(tmp_path)["code"] == "3c69e07"
 
 
-def test_committed_tables_agree_with_their_runs(claims):
+def test_committed_tables_agree_with_their_runs():
     """`claims.py --check` on every committed run_table.py output (the tables and the
     knob's points, those made before network parity in results/before_parity too): its
     results.json, table.md and claims.md are what its runs' evidence files give."""
@@ -247,49 +276,51 @@ def test_committed_tables_agree_with_their_runs(claims):
     assert before >= {"table_5m", "table_20m", "knob_p0", "knob_p1", "rerun_org_5m",
                       "rerun_org_il_5m"}, before
     for table in tables:
-        assert claims.check(table) == [], table
+        assert table_files.check(table) == [], table
 
 
-def test_the_knob_tables_agree_with_their_runs(claims, tmp_path):
+def test_the_knob_tables_agree_with_their_runs(tmp_path):
     """experiments/knob.py --check: knob.md is what the knob's runs give (success from
     their test results, adjacency from the matrices in their adjacency.json); a tampered
     matrix is named."""
     knob = experiment_script("knob")
     assert knob.main(["--check"]) == 0
-    rows = knob.point_rows()
-    measured = [r for r in rows if r["stats"]]
+    assert knob.RESULTS == BEFORE_PARITY
+    points = before_parity.knob_points(BEFORE_PARITY)
+    measured = [r for r in points if r["stats"]]
     assert measured and all(len(r["stats"]["differences"]) == len(r["seeds"]) for r in measured)
-    table_runs = knob.table_adjacency()          # every ORG and ORG + IL run of the table
+    table_runs = before_parity.knob_table_adjacency(BEFORE_PARITY)   # every ORG, ORG + IL run
     assert {row: sorted(r) for row, r in table_runs.items()} == \
         {"org": list("01234"), "org_il": list("01234")}
-    assert knob.RESULTS == EXPERIMENTS / "results" / "before_parity"
-    adj = next(iter(sorted(knob.RESULTS.glob("*/runs/org-s*/adjacency.json"))))
+    adj = next(iter(sorted(BEFORE_PARITY.glob("*/runs/org-s*/adjacency.json"))))
     doc = json.loads(adj.read_text())
     doc["A"][0][1] += 1.0
     bad = tmp_path / "adjacency.json"
     bad.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="adjacency.json: the stored report differs"):
-        knob.read_adjacency(bad)
+        adjacency.read_adjacency(bad)
 
 
 def test_tpn_budget_gain_is_paired_by_episode_and_tabled(tmp_path):
-    """experiments/tpn_budget.py: the gain over the base alone is the mean per-episode
-    success difference with its normal 95% interval; the table shows the chosen lr."""
-    budget = experiment_script("tpn_budget")
+    """The TPN budget page (experiments/tpn_budget.py): the gain over the base alone is
+    the mean per-episode success difference with its 95% t interval; the table shows the
+    chosen lr; --check recomputes the committed sweep's files."""
+    from scipy import stats as sp
     rng = np.random.default_rng(0)
     alone = rng.random(400) < 0.6
     better = alone | (rng.random(400) < 0.2)             # never worse, sometimes better
-    mean, low, high = budget.paired_gain({"success": better}, {"success": alone})
+    mean, low, high = before_parity.tpn_budget_gain({"success": better}, {"success": alone})
     d = 100 * (better.astype(float) - alone)
     assert mean == pytest.approx(d.mean()) and low < mean < high and low > 0
-    assert high - low == pytest.approx(2 * 1.96 * d.std(ddof=1) / np.sqrt(400))
+    assert high - low == pytest.approx(2 * sp.t.ppf(0.975, 399) * d.std(ddof=1) / np.sqrt(400))
     summary = {"lrs": [1e-3, 1e-2], "bases": {"baseline": {"alone": 0.6, "budgets": {
         "40000": {"val_ce": 1.0, "val_accuracy": 0.5, "success": {"0.001": 0.7, "0.01": 0.65},
                   "chosen": 1e-3, "gain": (mean, low, high)}}}}}
-    line = budget.table(summary).splitlines()[2]
+    line = before_parity.tpn_budget_table(summary).splitlines()[2]
     assert line.startswith("| baseline | 40,000 | 1.000 | 50.0 | 60.0 | 70.0 | 65.0 | 0.001 |")
-    committed = EXPERIMENTS / "results" / "before_parity" / "tpn_budget"  # the sweep's files
-    assert budget.main(["--out", str(committed), "--check"]) == 0
+    budget = experiment_script("tpn_budget")
+    committed = BEFORE_PARITY / "tpn_budget"                    # the sweep's files
+    assert budget.OUT == committed and budget.main(["--check"]) == 0
     copy = tmp_path / "tpn_budget"                             # a tampered summary is named
     shutil.copytree(committed, copy)
     val = copy / "runs" / "baseline-s100" / "val_results.json"
@@ -305,16 +336,15 @@ def test_the_20m_comparison_agrees_with_its_runs(tmp_path):
     give; the curve points are the first val record at or after each budget, so a changed
     val record at 20 M changes the table."""
     budget = experiment_script("budget_20m")
-    assert (budget.SHORT, budget.LONG) == tuple(
-        EXPERIMENTS / "results" / "before_parity" / t for t in ("table_5m", "table_20m"))
-    assert budget.main(["--check"]) == 0
-    run = budget.LONG / "runs" / "org-s0"
+    assert budget.RESULTS == BEFORE_PARITY and budget.main(["--check"]) == 0
+    long = BEFORE_PARITY / before_parity.LONG
+    run = long / "runs" / "org-s0"
     vals = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()
             if '"val"' in line]
-    assert budget.val_at(run, 20_000_000) == 100 * vals[-1]["success"]
+    assert runs.val_at(run, 20_000_000)["success"] == vals[-1]["success"]
     assert vals[-2]["env_steps"] < 20_000_000 <= vals[-1]["env_steps"]
     copy = tmp_path / "table_20m"
-    shutil.copytree(budget.LONG, copy)
+    shutil.copytree(long, copy)
     metrics = copy / "runs" / "org-s0" / "metrics.jsonl"
     lines = metrics.read_text().splitlines()
     last = max(i for i, line in enumerate(lines) if '"val"' in line)
@@ -322,9 +352,10 @@ def test_the_20m_comparison_agrees_with_its_runs(tmp_path):
     doc["success"] = 0.0
     lines[last] = json.dumps(doc)
     metrics.write_text("\n".join(lines) + "\n")
-    assert budget.markdown(long_dir=copy) != (budget.LONG / "budget.md").read_text()
+    assert before_parity.budget_20m_markdown(BEFORE_PARITY, long_dir=copy) != \
+        (long / "budget.md").read_text()
     with pytest.raises(ValueError, match="no val record at or after 30,000,000 env steps"):
-        budget.val_at(run, 30_000_000)
+        runs.val_at(run, 30_000_000)
 
 
 # issue 38: the experiment scripts follow the CLIs' error convention (orgnav_jax.errors.
@@ -372,8 +403,7 @@ def test_claims_bad_tables_are_one_line_and_write_nothing(claims, table_dir, tmp
 
 def test_run_table_bad_specs_and_outputs_are_one_line_and_write_nothing(table_dir, tmp_path_factory,
                                                                         cli_error):
-    sys.path.insert(0, str(EXPERIMENTS))
-    import run_table
+    run_table = experiment_script("run_table")
     work = tmp_path_factory.mktemp("specs")
     good = {"out": str(work / "t"), "rows": ["baseline"], "seeds": [0], "config": {},
             "tpn": {}}
@@ -415,8 +445,7 @@ def test_val_sweep_pretrains_a_vtnet_variant_first_and_reads_a_finished_run(
     from it (as `--preset vtnet` does), another row does not pre-train, and a run whose
     metrics reach the budget (one made elsewhere, without checkpoints) is read, not
     trained again. Training is replaced by a stand-in that writes a run's files."""
-    sys.path.insert(0, str(EXPERIMENTS))
-    import val_sweep
+    val_sweep = experiment_script("val_sweep")
     from orgnav_jax.training import loop
     from orgnav_jax.training.run_dir import write_config
     calls = []
@@ -445,6 +474,21 @@ def test_val_sweep_pretrains_a_vtnet_variant_first_and_reads_a_finished_run(
     calls.clear()
     val_sweep.main(argv)                          # both finished: read, nothing trained
     assert calls == []
+    check = ["--name", "v", "--out", str(tmp_path), "--check"]   # the summary from the JSON
+    assert val_sweep.main(check) == 0
+    (tmp_path / "v.md").write_text("edited\n")
+    assert val_sweep.main(check) == 1 and calls == []
+
+
+def test_committed_val_sweep_summaries_agree_with_their_records():
+    """`val_sweep.py --name NAME --out DIR --check` on every committed sweep summary:
+    NAME.md (mean ± sample std over seeds) is what NAME.json gives."""
+    val_sweep = experiment_script("val_sweep")
+    summaries = sorted(md for md in (EXPERIMENTS / "results").glob("**/val_choices/*.md")
+                       if md.name != "choices.md")
+    assert len(summaries) >= 9, summaries
+    for md in summaries:
+        assert val_sweep.main(["--name", md.stem, "--out", str(md.parent), "--check"]) == 0, md
 
 
 # ---- issue 55 (bad input, round four): the sweep scripts and the TPN parity check ------

@@ -237,12 +237,11 @@ def test_failure_shares_sum_to_one_in_every_summary(test_split, test_episodes):
 
 
 def test_run_table_shows_failure_columns_and_dashes_for_old_results(tmp_path):
-    from helpers import experiment_script
-    run_table = experiment_script("run_table")
+    from orgnav_jax.tables.table_files import write_table
     base = {"success": 0.4, "spl": 0.2, "success_L5": 0.3, "spl_L5": 0.1}
     new = {**base, "wrong_done": 0.25, "timeout": 0.35, "revisits": 3.0, "failed_moves": 1.5}
     new2 = {**new, "wrong_done": 0.35, "timeout": 0.25, "revisits": 5.0}
-    text = run_table.write_table(tmp_path, {"baseline": {"0": new, "1": new2},
+    text = write_table(tmp_path, {"baseline": {"0": new, "1": new2},
                                             "il": {"0": base, "1": new}})
     head, _, baseline, il = text.splitlines()
     assert head.split(" | ")[-4:] == ["wrong Done", "timeout", "revisits/ep",

@@ -107,3 +107,89 @@ def test_the_check_sees_the_parts_of_scenes(tmp_path):
     assert imported_parts(f) == {"scenes.offline", "scenes", "scenes.synthetic", "scenes.cli"}
     assert part(module_name("scenes/sceneset/__init__.py")) == "scenes.sceneset"
     assert part(module_name("scenes/__init__.py")) == "scenes"
+
+
+# ---- experiments/: thin command lines over the package (docs/results.md, "The tables
+# library"): they import the package up to api and plots (never a command line, never
+# each other), leave sys.path alone, and import at the top, or say why not
+
+EXPERIMENTS = PACKAGE.parent / "experiments"
+SCRIPT_LAYER = LAYER["api"]          # experiments/ sits beside api, below the command lines
+
+
+def scripts():
+    for path in sorted(EXPERIMENTS.rglob("*.py")):
+        rel = path.relative_to(EXPERIMENTS)
+        if rel.parts[0] != "results":
+            yield rel.as_posix()
+
+
+SCRIPT_NAMES = {Path(rel).stem for rel in scripts()}
+
+
+def imported_names(path: Path) -> set[str]:
+    """The top-level names of every module a file imports, anywhere in it."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            names |= {"." if node.level else node.module.split(".")[0]}
+    return names
+
+
+def late_imports(path: Path) -> list[ast.stmt]:
+    """The imports that are not statements of the module's top level (inside a function,
+    a class or an `if` block)."""
+    tree = ast.parse(path.read_text())
+    top = {id(node) for node in tree.body}
+    return [node for node in ast.walk(tree) if isinstance(node, (ast.Import, ast.ImportFrom))
+            and id(node) not in top]
+
+
+def says_why(lines: list[str], node: ast.stmt) -> bool:
+    """Whether an import carries a comment on its own lines or the line above."""
+    span = lines[node.lineno - 1:node.end_lineno]
+    return any("#" in line for line in span) or \
+        lines[node.lineno - 2].strip().startswith("#")
+
+
+@pytest.mark.parametrize("rel", list(scripts()))
+def test_scripts_import_only_the_package_and_never_each_other(rel):
+    path = EXPERIMENTS / rel
+    others = imported_names(path) & (SCRIPT_NAMES | {"."})
+    assert not others, f"experiments/{rel} imports another script: {sorted(others)}"
+    above = {p for p in imported_parts(path) if LAYER[p] > SCRIPT_LAYER}
+    assert not above, f"experiments/{rel} imports a command line: {sorted(above)}"
+
+
+def sys_path_lines(path: Path) -> list[int]:
+    """The lines where a file uses sys.path."""
+    return [node.lineno for node in ast.walk(ast.parse(path.read_text()))
+            if isinstance(node, ast.Attribute) and node.attr == "path"
+            and isinstance(node.value, ast.Name) and node.value.id == "sys"]
+
+
+@pytest.mark.parametrize("rel", list(scripts()))
+def test_scripts_leave_sys_path_alone(rel):
+    touched = sys_path_lines(EXPERIMENTS / rel)
+    assert not touched, f"experiments/{rel} uses sys.path on line(s) {touched}"
+
+
+@pytest.mark.parametrize("rel", list(scripts()))
+def test_scripts_import_at_the_top_or_say_why(rel):
+    path = EXPERIMENTS / rel
+    lines = path.read_text().splitlines()
+    silent = [node.lineno for node in late_imports(path) if not says_why(lines, node)]
+    assert not silent, (f"experiments/{rel}: imports inside a function without a comment "
+                        f"saying why, line(s) {silent}")
+
+
+def test_the_script_checks_see_what_they_look_for(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("import sys\nimport run_table\n\n\ndef g():\n    import claims\n"
+                 "    from orgnav_jax import api  # (a reason)\n    sys.path.insert(0, '.')\n")
+    assert {"run_table", "claims"} <= imported_names(f) & SCRIPT_NAMES
+    lines = f.read_text().splitlines()
+    assert [says_why(lines, n) for n in late_imports(f)] == [False, True]
+    assert sys_path_lines(f) == [8]

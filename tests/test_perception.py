@@ -188,8 +188,7 @@ def test_knobs_recorded_in_the_set_info():
 
 
 def test_calibrated_preset_is_the_chosen_calibration_setting():
-    from helpers import experiment_script
-    calibration = experiment_script("calibration")
+    from orgnav_jax.tables import calibration
     preset = get_preset("calibrated")
     assert preset.perception.changed() == calibration.SETTINGS[calibration.CHOSEN]
     small = get_preset("small")

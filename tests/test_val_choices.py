@@ -1,44 +1,47 @@
-"""The package's defaults are the values val chose (experiments/val_choices.py): the
-record equals what the committed sweeps give, and the defaults equal the record."""
+"""The package's defaults are the values val chose (orgnav_jax/tables/choices.py, run by
+experiments/val_choices.py): the record equals what the committed sweeps give, and the
+defaults equal the record."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from helpers import EXPERIMENTS, experiment_script
+
+from orgnav_jax.tables import choices
+from orgnav_jax.tables.rows import Row
 
 ROOT = Path(__file__).resolve().parents[1]
+OUT = EXPERIMENTS / "results" / "val_choices"
 
 
 @pytest.fixture(scope="module")
 def val_choices():
-    spec = importlib.util.spec_from_file_location("val_choices",
-                                                  ROOT / "experiments" / "val_choices.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """experiments/val_choices.py, the command line."""
+    return experiment_script("val_choices")
 
 
 def test_the_record_is_what_the_sweeps_give(val_choices):
-    recorded = json.loads((val_choices.OUT / "choices.json").read_text())
-    assert recorded == json.loads(json.dumps(val_choices.choices()))
-    sweeps = val_choices.sweep_files()
+    recorded = json.loads((OUT / "choices.json").read_text())
+    assert recorded == json.loads(json.dumps(choices.choices(OUT)))
+    assert val_choices.OUT == OUT and val_choices.main(["--check"]) == 0
+    sweeps = choices.sweep_files(OUT)
     for sweep in sweeps:                                     # seeds no table uses
         seeds = {s for runs in json.loads(sweep.read_text()).values() for s in runs}
         assert seeds and all(int(s) >= 100 for s in seeds), (sweep.name, seeds)
     assert {"dropout.json", "il.json", "optim.json"} <= {p.name for p in sweeps}
-    tpn = [json.loads(p.read_text()) for p in val_choices.OUT.glob("tpn_placement_*_tpn*.json")
+    tpn = [json.loads(p.read_text()) for p in OUT.glob("tpn_placement_*_tpn*.json")
            if not p.name.count(".lr")]
     assert all(d["split"] == "val" for d in tpn)
 
 
-def test_defaults_are_the_choices(val_choices):
+def test_defaults_are_the_choices():
     from orgnav_jax import train as train_cli
     from orgnav_jax.tpn.config import TPN_LR, TestTime, TPNConfig
     from orgnav_jax.training.config import TABLE_DROPOUT, TrainConfig, get_config
-    chosen = {k: v["value"] for k, v in val_choices.choices().items()}
+    chosen = {k: v["value"] for k, v in choices.choices(OUT).items()}
     assert TABLE_DROPOUT == chosen["dropout"] == get_config("baseline").dropout
     spec = json.loads((ROOT / "experiments" / "tables" / "table_5m.json").read_text())
     assert spec["config"].get("dropout", TABLE_DROPOUT) == chosen["dropout"]
@@ -55,8 +58,8 @@ def test_defaults_are_the_choices(val_choices):
                 == chosen[name], field
     if "tpn_lr" in chosen:
         assert TPN_LR == TPNConfig().tpn_lr == TestTime().tpn_lr == chosen["tpn_lr"]
-        assert all(float(row.partition("@")[2]) == chosen["tpn_lr"]
-                   for row in spec["rows"] if "+" in row)
+        assert all(float(Row.of(row).lr) == chosen["tpn_lr"]
+                   for row in spec["rows"] if Row.of(row).is_tpn)
         assert TPNConfig().placement == TestTime().placement == chosen["tpn_placement"]
         assert TPNConfig().optim == chosen["tpn_stage2_optim"]
     if "pretrain_samples" in chosen:             # VTNet's sweep (issue 43)
@@ -103,7 +106,7 @@ def test_a_truncated_sweep_or_an_unknown_option_is_one_line_and_writes_nothing(
         if name == "savn.json":
             (tmp_path / "dropout.json").write_text(text)
         if name.startswith("tpn_placement"):
-            for run in val_choices.TPN_RUNS:
+            for run in choices.TPN_RUNS:
                 (tmp_path / f"tpn_placement_baseline-ours-s100_{run}.json").write_text(
                     json.dumps(tpn))
         (tmp_path / name).write_text(content)

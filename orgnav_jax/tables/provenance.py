@@ -1,0 +1,198 @@
+"""Which code and which machine made each run: a run directory's provenance.json (one
+record per process that trained, resumed or evaluated it) and a table's provenance.md
+made from those records.
+
+    started = process_provenance()            # once, when a command starts
+    resumed = work_recorded(run_dir, lambda resumed: api.train(cfg, resume=resumed),
+                            lambda resumed: "resumed and finished" if resumed else "trained")
+"""
+
+from __future__ import annotations
+
+import datetime
+import functools
+import json
+import os
+import platform
+import re
+import subprocess
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeVar
+
+import jax
+
+from orgnav_jax.errors import read_json
+from orgnav_jax.safe_write import write_text_atomic
+from orgnav_jax.tables.layout import table_run_dirs
+from orgnav_jax.tables.spec import read_table_spec
+from orgnav_jax.training.run_dir import is_run_dir
+
+PROVENANCE_FILE = "provenance.json"
+CHECKOUT = Path(__file__).resolve().parents[2]        # the checkout this code lies in
+T = TypeVar("T")
+
+
+def provenance(top: Path | None = None) -> dict:
+    """What made a run: the code version (of the checkout `top`, default this one), the
+    machine, the time. "uncommitted_changes": tracked code under orgnav_jax/ or
+    experiments/ differs from the commit; the tables' own files (experiments/results/,
+    which a running campaign rewrites) do not count, nor do file modes (a copied tree
+    can lose an executable bit). "code": ORGNAV_CODE where set (a copy of the tree on
+    another machine: experiments/gpu_streams/run.sh sets it to the commit of the clean
+    tree it copied), else HEAD. "device": what JAX ran on."""
+    top = top or CHECKOUT
+    def git(*args: str) -> str:
+        try:
+            return subprocess.run(["git", *args], cwd=top, capture_output=True,
+                                  text=True).stdout.strip()
+        except FileNotFoundError:                  # no git on the machine
+            return ""
+    cpu = next((line.split(":", 1)[1].strip() for line in
+                Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.processor()) \
+        if Path("/proc/cpuinfo").exists() else platform.processor()
+    device = jax.devices()[0]
+    return {"code": os.environ.get("ORGNAV_CODE") or git("rev-parse", "HEAD") or "unknown",
+            "uncommitted_changes": bool(git("-c", "core.fileMode=false", "status",
+                                            "--porcelain", "--untracked-files=no",
+                                            "--", "orgnav_jax", "experiments",
+                                            ":(exclude)experiments/results")),
+            "cpu": cpu, "device": f"{device.platform} {device.device_kind}",
+            "jax": jax.__version__, "python": platform.python_version(),
+            "time": now()}
+
+
+@functools.cache
+def process_provenance() -> dict:
+    """provenance() of this process, taken at its first call: a command calls it when it
+    starts, so that its records name the code it loaded, not the checkout's later state."""
+    return provenance()
+
+
+def now() -> str:
+    """The time of a provenance record: UTC, to the second, ISO 8601."""
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def read_provenance(path: Path) -> list:
+    """RUN_DIR/provenance.json: a list of per-process records ([] when absent); ValueError
+    naming the file otherwise."""
+    if not path.exists():
+        return []
+    records = read_json(path, "a provenance JSON")
+    if not isinstance(records, list) or not all(isinstance(x, dict) for x in records):
+        raise ValueError(f"{path}: expected a list of provenance records")
+    return records
+
+
+def record_provenance(run_dir: Path, what: str) -> None:
+    """Append this process and what it did to RUN_DIR/provenance.json (after the work: a
+    fresh run directory must be empty when training starts): the code version and
+    machine of the process as it started (process_provenance: "code",
+    "uncommitted_changes": what ran), and the time of the record."""
+    path = run_dir / PROVENANCE_FILE
+    records = read_provenance(path)
+    started = process_provenance()
+    record = dict(started, started=started["time"], time=now(), did=what)
+    write_text_atomic(path, json.dumps(records + [record], indent=1))
+
+
+def work_recorded(run_dir: Path, work: Callable[[bool], T],
+                  did: Callable[[bool], str]) -> T:
+    """The one way a table's run is trained or resumed: work(resumed) (resumed: run_dir
+    already holds a run of this program), then a provenance record of did(resumed).
+    -> what work returned."""
+    resumed = is_run_dir(run_dir)
+    result = work(resumed)
+    record_provenance(run_dir, did(resumed))
+    return result
+
+
+PROVENANCE_HEADER = """# Which code and which machine made each run
+
+Generated by `python experiments/claims.py TABLE` from the runs' `provenance.json` records
+(`--check` recomputes it). A record is one process that trained, resumed or evaluated a
+run; runs with the same records are one line. `ROW/tpn` is the TPN (stage 2) of row ROW's
+run, which every `ROW+VARIANT@LR` row evaluates; `ROW-pretrain` a pre-training. code: the
+commit the process started from (`ORGNAV_CODE` for a copy of the tree on another machine);
+uncommitted: whether tracked code under orgnav_jax/ or experiments/ differed from it (what
+it counted is in docs/results.md); date: of the record, UTC.
+
+"""
+
+
+def seed_ranges(seeds: list[str]) -> str:
+    """["0", "1", "2", "4"] -> "0-2, 4" (non-numbers after the numbers, as given)."""
+    nums = sorted(int(x) for x in seeds if x.isdigit())
+    parts: list[str] = []
+    for n in nums:
+        if parts and n == last + 1:
+            parts[-1] = f"{parts[-1].split('-')[0]}-{n}"
+        else:
+            parts.append(str(n))
+        last = n
+    return ", ".join(parts + [x for x in seeds if not x.isdigit()])
+
+
+def what_was_done(dids: list[str]) -> str:
+    """A group's records' `did` texts, one clause each, with what they tested gathered at
+    the end: ["trained the TPN, tested tpn@1e-4", "reloaded it, tested tpn_all@1e-4"] ->
+    "trained the TPN; reloaded it; tested tpn@1e-4, tpn_all@1e-4"."""
+    actions: list[str] = []
+    tested: list[str] = []
+    any_test = False
+    for did in dids:
+        action, sep, what = did.partition("tested")
+        action = action.strip().rstrip(",").strip()
+        any_test = any_test or bool(sep)
+        actions += [action] if action and action not in actions else []
+        what = what.strip()
+        tested += [what] if what and what not in tested else []
+    return "; ".join(actions + (["tested " + ", ".join(tested) if tested else "tested"]
+                                if any_test else []))
+
+
+def provenance_table(out: Path) -> str:
+    """provenance.md: for each group of runs (a row's seeds; ROW/tpn; ROW-pretrain) and
+    each distinct record (code, uncommitted changes, device, CPU, jax), the seeds, what
+    the processes did and their dates; finished runs without records say so (a run still
+    training, with neither, is left out). ValueError naming a
+    provenance.json that cannot be read."""
+    spec = read_table_spec(out)
+    groups: dict[tuple, dict] = {}
+    for run in table_run_dirs(out, spec):
+        if not run.is_dir():
+            continue                                    # not run yet
+        if not (run / PROVENANCE_FILE).exists() and not any(run.glob("test*.json")):
+            continue                                    # still training: nothing recorded
+        top, *rest = run.relative_to(out / "runs").parts
+        match = re.fullmatch(r"(.+)-s(\d+)", top)
+        name, seed = (match[1], match[2]) if match else (top, "-")
+        name = "/".join([name, *rest])
+        records = read_provenance(run / PROVENANCE_FILE)
+        for rec in records or [None]:
+            sig = (None if rec is None else
+                   (str(rec.get("code", "?"))[:7], rec.get("uncommitted_changes"),
+                    rec.get("device", "not recorded"), rec.get("cpu", "?"),
+                    rec.get("jax", "?")))
+            entry = groups.setdefault((name, sig), {"seeds": [], "did": [], "dates": []})
+            if seed not in entry["seeds"]:
+                entry["seeds"].append(seed)
+            did = "no provenance.json" if rec is None else \
+                re.sub(r"-s\d+\b", "-sS", str(rec.get("did", "?")))
+            date = "" if rec is None else str(rec.get("time", ""))[:10]
+            entry["did"] += [did] if did not in entry["did"] else []
+            entry["dates"] += [date] if date and date not in entry["dates"] else []
+    lines = ["| runs | seeds | what the processes did | code | uncommitted | device | CPU "
+             "| jax | date |", "|---|---|---|---|---|---|---|---|---|"]
+    for (name, sig), e in groups.items():
+        seeds = seed_ranges(e["seeds"])
+        dates = sorted(e["dates"])
+        date = "" if not dates else dates[0] if len(dates) == 1 else \
+            f"{dates[0]} to {dates[-1]}"
+        code, dirty, device, cpu, jax_version = sig or ("-",) * 5
+        dirty = "-" if sig is None else "yes" if dirty else "no"
+        lines.append(f"| {name} | {seeds} | {what_was_done(e['did'])} | {code} | {dirty} | "
+                     f"{device} | {cpu} | {jax_version} | {date} |")
+    return PROVENANCE_HEADER + "\n".join(lines) + "\n"

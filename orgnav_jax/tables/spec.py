@@ -1,0 +1,71 @@
+"""A table's spec: its one definition (JSON: out, rows, seeds, config overrides, tpn
+fields; optionally about and population), e.g. experiments/tables/table_5m.json, copied to
+OUT/spec.json when the table is made."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from orgnav_jax.errors import INT32_MAX, is_int, shown
+from orgnav_jax.tables.rows import parse_row
+from orgnav_jax.tpn.config import get_tpn_config
+from orgnav_jax.training.config import get_config
+
+SPEC_KEYS = {"out": str, "rows": list, "seeds": list, "config": dict, "tpn": dict}
+SPEC_OPTIONAL = {"about": str, "population": bool}
+
+
+def read_spec(path: str | Path) -> dict:
+    """A table spec (JSON: out, rows, seeds, config, tpn) -> dict; ValueError naming the
+    file and the field otherwise."""
+    if Path(path).is_dir():
+        raise ValueError(f"table spec {path}: a directory, expected a JSON file")
+    try:
+        spec = json.loads(Path(path).read_text())
+    except ValueError as err:
+        raise ValueError(f"table spec {path}: not JSON ({err})") from None
+    if not isinstance(spec, dict):
+        raise ValueError(f"table spec {path}: expected a JSON object")
+    for key, kind in SPEC_KEYS.items():
+        if key not in spec or not isinstance(spec[key], kind):
+            raise ValueError(f"table spec {path}: field {key!r} missing or not a "
+                             f"{kind.__name__}")
+    unknown = sorted(set(spec) - set(SPEC_KEYS) - set(SPEC_OPTIONAL))
+    if unknown:
+        raise ValueError(f"table spec {path}: unknown field(s) {unknown}")
+    for key, kind in SPEC_OPTIONAL.items():
+        if key in spec and not isinstance(spec[key], kind):
+            raise ValueError(f"table spec {path}: field {key!r} is not a {kind.__name__}")
+    if not spec["rows"]:
+        raise ValueError(f"table spec {path}: field 'rows': expected at least one row")
+    for row in spec["rows"]:
+        if not isinstance(row, str):
+            raise ValueError(f"table spec {path}: field 'rows': expected row names "
+                             f"(strings), got {row!r}")
+        try:
+            parse_row(row)
+        except ValueError as err:
+            raise ValueError(f"table spec {path}: field 'rows': {err}") from None
+    if not spec["seeds"] or not all(is_int(x) and 0 <= x <= INT32_MAX for x in spec["seeds"]):
+        raise ValueError(f"table spec {path}: field 'seeds': expected integers >= 0, got "
+                         f"{shown(spec['seeds'])}")
+    for key in ("rows", "seeds"):
+        if len(set(spec[key])) != len(spec[key]):
+            raise ValueError(f"table spec {path}: field {key!r}: an entry appears twice")
+    if not spec["out"]:
+        raise ValueError(f"table spec {path}: field 'out': expected a directory, got ''")
+    get_config("baseline", **spec["config"])          # names a bad field or value
+    get_tpn_config(base_dir="runs/x", **spec["tpn"])
+    return spec
+
+
+def read_table_spec(out: Path) -> dict:
+    """TABLE/spec.json of a table directory (ValueError naming what is missing)."""
+    if not out.is_dir():
+        raise ValueError(f"{out}: not a directory (expected a run_table.py output "
+                         "directory with spec.json)")
+    spec_path = out / "spec.json"
+    if not spec_path.is_file():
+        raise ValueError(f"{spec_path}: missing (run_table.py --spec writes it)")
+    return read_spec(spec_path)
