@@ -480,7 +480,7 @@ def test_seeds_widths_and_floorplan_numbers_out_of_range_are_one_line(offline, c
 # ------------------------------------------------------------------ round five (issue 67)
 # The scene cache, checked against the preset's whole definition on every load. A
 # 4-room preset (one train room per type, the tiny set's widths) stands in for
-# `calibrated`; its "build" is a selection of the session's tiny set (no generation).
+# `calibrated`; its "build" is a selection of the shared tiny set (no generation).
 FOUR = "four"
 
 
