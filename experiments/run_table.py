@@ -75,7 +75,7 @@ from orgnav_jax.tables.layout import (check_out, existing_results, pretrain_dir,
 from orgnav_jax.tables.provenance import process_provenance, record_provenance, work_recorded
 from orgnav_jax.tables.rows import Row, all_row_names, parse_row
 from orgnav_jax.tables.runs import pretrain_budget, read_results
-from orgnav_jax.tables.spec import read_spec
+from orgnav_jax.tables.spec import read_spec, table_scenes
 from orgnav_jax.tables.table import METRICS
 from orgnav_jax.tpn.config import get_tpn_config
 from orgnav_jax.training.config import add_config_arguments, get_config, overrides_from_args
@@ -256,7 +256,7 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"--seeds: expected integers >= 0, got {args.seeds}")
     out = Path(args.out)
     check_out(out, args.spec)
-    table_files.check_run_files(out, args.rows, args.seeds)
+    table_files.check_run_files(out, args.rows, args.seeds, table_scenes(overrides))
     out.mkdir(parents=True, exist_ok=True)
     with RunLock(out):        # one table writer per --out (results.json is rewritten)
         if spec is not None:

@@ -630,3 +630,92 @@ def test_calibration_table_agrees_with_its_runs():
     calibration = experiment_script("calibration")
     assert calibration.main(["--check"]) == 0
     assert "(chosen)" in (calibration.OUT / "calibration.md").read_text()
+
+
+# round five (issue 67): tables fed the wrong files --------------------------------------
+
+def test_tables_fed_the_wrong_files_are_one_line_and_write_nothing(claims, table_dir,
+                                                                   tmp_path_factory,
+                                                                   cli_error):
+    """claims.py reported a val evaluation as test; judged the calibrated predictions on
+    runs made on `small` under a spec naming `calibrated`, and dropped them for a spec
+    naming no preset over calibrated runs; run_table.py, resumed across the default
+    preset's change, put runs of two presets into one row. Each is one line naming the
+    file before anything is written or trained."""
+    from orgnav_jax.training.config import get_config
+    run_table = experiment_script("run_table")
+    results = table_dir / "runs" / "il-s1" / "test_results.json"
+    text = results.read_text()
+    results.write_text(json.dumps({**json.loads(text), "split": "val"}))
+    before = _snapshot(table_dir)
+    for argv in ([table_dir], [table_dir, "--check"], [table_dir, "--compact"],
+                 [table_dir, "--per-category", "il", "baseline"]):
+        assert cli_error(claims.main, argv).endswith(
+            f"{results}: field 'split': expected 'test' (the split the table reports), "
+            "got 'val'")
+    results.write_text(json.dumps({**json.loads(text), "scenes": "small"}))
+    assert cli_error(claims.main, [table_dir]).endswith(
+        f"{results}: field 'scenes': expected 'calibrated' (the table's scenes: its spec's "
+        "config, or the default scene preset), got 'small'")
+    results.write_text(text)
+    # a run's config on `small` under a spec naming `calibrated` (or none: the default)
+    config = table_dir / "runs" / "baseline-s0" / "config.json"
+    config.write_text(get_config("baseline", scene_preset="small",
+                                 run_dir=str(config.parent)).to_json())
+    spec = json.loads((table_dir / "spec.json").read_text())
+    want = (f"{config}: the run was trained on 'small', but the table's scenes are "
+            "'calibrated' (its spec's config, or the default scene preset where it names "
+            "none): a table's runs are on one set of scenes; name theirs in the spec's "
+            "config, or use another --out")
+    for named in ({}, {"scene_preset": "calibrated"}):
+        (table_dir / "spec.json").write_text(json.dumps(dict(spec, config=named)))
+        before = _snapshot(table_dir)
+        assert cli_error(claims.main, [table_dir]).endswith(want)
+        # run_table.py resumed with the spec, or without one (rows of another invocation)
+        work = tmp_path_factory.mktemp("spec")
+        (work / "s.json").write_text(json.dumps(dict(spec, config=named,
+                                                     out=str(table_dir))))
+        assert cli_error(run_table.main, ["--spec", work / "s.json"]).endswith(want)
+        assert cli_error(run_table.main, ["--out", table_dir, "--rows", "il", "--seeds",
+                                          "1"]).endswith(want)
+        assert _snapshot(table_dir) == before
+    # the runs named right: the predictions of a spec naming no preset are the default's
+    config.write_text(get_config("baseline", run_dir=str(config.parent)).to_json())
+    names = [c[0] for c in claims_lib.claims("1e-3", dict(spec, config={}))]
+    assert "D-SP > WE" in names and "full model > Baseline (paper +12.9)" in names
+    assert "D-SP > WE" not in [c[0] for c in claims_lib.claims(
+        "1e-3", dict(spec, config={"scene_preset": "small"}))]
+    assert claims.main([str(table_dir)]) == 0
+
+
+@pytest.fixture
+def calibration_copy(tmp_path, monkeypatch):
+    """experiments/calibration.py over a copy of the calibration runs (OUT patched)."""
+    calibration = experiment_script("calibration")
+    out = Path(shutil.copytree(calibration.OUT, tmp_path / "calibration"))
+    monkeypatch.setattr(calibration, "OUT", out)
+    return calibration, out
+
+
+def test_calibration_check_reads_every_file_through_its_reader(calibration_copy, cli_error):
+    """`calibration.py --check` passed a table whose SPL was edited (in the results and
+    the page) away from what the per-episode outcomes give, ended in a traceback on a
+    val_results.json without per-episode outcomes, and named no file for a cut
+    metrics.jsonl line (issue 67; the tables library's readers, tables/runs.py)."""
+    calibration, out = calibration_copy
+    results = out / "runs" / "baseline-g3d1" / "val_results.json"
+    text = results.read_text()
+    doc = json.loads(text)
+    results.write_text(json.dumps({**doc, "overall": {**doc["overall"], "spl": 0.5}}))
+    assert cli_error(calibration.main, ["--check"]).endswith(
+        f"{results}: the stored summary differs from its per-episode outcomes in ['spl']")
+    results.write_text(json.dumps({k: v for k, v in doc.items() if k != "per_episode"}))
+    assert cli_error(calibration.main, ["--check"]).endswith(
+        f"{results}: no per-episode outcomes (the release SPL needs them)")
+    results.write_text(text)
+    metrics = out / "runs" / "baseline-g3d1" / "metrics.jsonl"
+    n = len(metrics.read_text().splitlines()) + 1
+    with metrics.open("a") as f:
+        f.write('{"kind": "val", "env_st')
+    assert cli_error(calibration.main, ["--check"]).endswith(
+        f"{metrics} line {n}: not valid JSON (expected one JSON object a line)")

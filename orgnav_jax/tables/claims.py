@@ -22,10 +22,10 @@ import numpy as np
 from orgnav_jax.constants import CATEGORIES
 from orgnav_jax.scenes.synthetic.catalog import ANCHORS
 from orgnav_jax.tables import stats
-from orgnav_jax.tables.layout import existing_results
+from orgnav_jax.tables.layout import existing_results, run_dir
 from orgnav_jax.tables.rows import lr_tag
-from orgnav_jax.tables.runs import read_results_doc, read_table_dir
-from orgnav_jax.tables.spec import read_table_spec
+from orgnav_jax.tables.runs import check_run_scenes, read_results_doc, read_table_dir
+from orgnav_jax.tables.spec import read_table_spec, table_scenes
 
 METRIC_NAMES = {"success": "success", "spl": "SPL"}
 
@@ -88,8 +88,10 @@ def later_claims(lr: str) -> list[tuple[str, str, str, int, str]]:
 def predicted_claims(lr: str, spec: dict | None) -> list[tuple[str, str, str, int]]:
     """The predictions registered for the calibrated benchmark (docs/results.md, "The
     calibrated table: predictions", commit e68b2c8) that no claim above states: listed
-    for a table on the `calibrated` preset only."""
-    if spec is None or spec["config"].get("scene_preset") != "calibrated":
+    for a table on the `calibrated` preset only (named in its spec, or the default: a spec
+    naming no preset was dropped from them; its runs are checked to be on it,
+    runs.check_run_scenes)."""
+    if spec is None or table_scenes(spec["config"]) != "calibrated":
         return []
     return [("full model > Baseline (paper +12.9)", f"org_il+tpn@{lr}", "baseline", 1),
             ("D-SP > WE", "dsp", "we", 1)]
@@ -176,7 +178,8 @@ def per_category(out: Path, row: str = "org", ref: str = "baseline") -> str:
         for seed in spec["seeds"]:
             path = existing_results(out, r, seed)
             if path is not None:
-                doc = read_results_doc(path)
+                check_run_scenes(run_dir(out, r, seed), table_scenes(spec["config"]))
+                doc = read_results_doc(path, "test", table_scenes(spec["config"]))
                 if "per_episode" not in doc:
                     raise ValueError(f"{path}: no per-episode outcomes (written before "
                                      "they were kept): --per-category needs them")

@@ -15,21 +15,30 @@ from pathlib import Path
 
 import numpy as np
 
-from orgnav_jax.errors import is_number, read_field, read_json, read_object
+from orgnav_jax.errors import is_number, read_field, read_json, read_object, shown
 from orgnav_jax.evaluation import episodes_from_record, summarize
-from orgnav_jax.tables.layout import existing_results, pretrain_dir
+from orgnav_jax.tables.layout import existing_results, pretrain_dir, run_dir
 from orgnav_jax.tables.rows import Row
-from orgnav_jax.tables.spec import read_table_spec
+from orgnav_jax.tables.spec import read_table_spec, table_scenes
+from orgnav_jax.training.config import load_config
 from orgnav_jax.training.pretrain import load_pretrain_config
-from orgnav_jax.training.run_dir import METRICS_FILE, is_run_dir, read_metrics
+from orgnav_jax.training.run_dir import CONFIG_FILE, METRICS_FILE, is_run_dir, read_metrics
 
 
-def read_results_doc(path: Path) -> dict:
+def read_results_doc(path: Path, split: str | None = None, scenes: str | None = None) -> dict:
     """A results JSON as api.evaluate writes it, checked: an object with an `overall`
     object of numbers; when it keeps `per_episode` outcomes, the summary recomputed from
-    them must equal the stored one (and the arrays are kept under `_per`). ValueError
-    naming the file otherwise."""
+    them must equal the stored one (and the arrays are kept under `_per`); with `split`
+    and `scenes`, the ones it records (results written before they were recorded have
+    none) must be those. ValueError naming the file otherwise."""
     doc = read_object(read_json(path, "a results JSON"), path)
+    for field, want, what in (("split", split, "the split the table reports"),
+                              ("scenes", scenes, "the table's scenes: its spec's config, "
+                                                 "or the default scene preset")):
+        got = doc.get(field)
+        if want is not None and got is not None and got != want:
+            raise ValueError(f"{path}: field {field!r}: expected {want!r} ({what}), got "
+                             f"{shown(got)}")
     stored = read_object(read_field(doc, "overall", path), f"{path}: field 'overall'")
     bad = [k for k, v in stored.items() if not is_number(v)]
     if bad:
@@ -53,13 +62,42 @@ def read_results_doc(path: Path) -> dict:
     return doc
 
 
-def read_results(path: Path) -> tuple[dict, dict | None]:
+def read_results(path: Path, split: str | None = None,
+                 scenes: str | None = None) -> tuple[dict, dict | None]:
     """A results JSON -> (its stored overall summary, its per-episode arrays: success,
     spl, ... (E,) each; None for results written before per-episode outcomes were kept).
     The summary is recomputed from the per-episode outcomes and must equal the stored one
-    (read_results_doc: ValueError naming the file otherwise)."""
-    doc = read_results_doc(path)
+    (read_results_doc: ValueError naming the file otherwise; split, scenes: what it must
+    record)."""
+    doc = read_results_doc(path, split, scenes)
     return doc["overall"], doc.get("_per")
+
+
+def run_scenes(run: Path) -> str | None:
+    """The scenes a training or pre-training run directory's config names (as
+    spec.table_scenes names a table's), through the config's typed reader; None where
+    `run` holds no such run (a TPN run's are its base's)."""
+    if not is_run_dir(run):
+        return None
+    doc = read_json(Path(run) / CONFIG_FILE, "a run config")
+    stage = doc.get("stage", "nav") if isinstance(doc, dict) else None
+    if stage not in ("nav", "pretrain"):
+        return None
+    cfg = load_config(run) if stage == "nav" else load_pretrain_config(run)
+    return Path(cfg.scenes_dir).name if cfg.scenes_dir else cfg.scene_preset
+
+
+def check_run_scenes(run: Path, scenes: str) -> None:
+    """ValueError naming the run's config when it was trained on other scenes than the
+    table's `scenes` (a table resumed across the default's change, or a spec naming
+    another preset than its runs'), before anything is judged or trained."""
+    got = run_scenes(run)
+    if got is not None and got != scenes:
+        raise ValueError(f"{Path(run) / CONFIG_FILE}: the run was trained on {got!r}, but "
+                         f"the table's scenes are {scenes!r} (its spec's config, or the "
+                         "default scene preset where it names none): a table's runs are "
+                         "on one set of scenes; name theirs in the spec's config, or use "
+                         "another --out")
 
 
 def val_records(run_dir: Path, step: str = "env_steps", skip_broken: bool = False,
@@ -127,8 +165,10 @@ def read_table_dir(out: Path) -> tuple[dict, dict, dict]:
     checked against its per-episode outcomes), results[row][seed] = overall summary (with
     a pre-trained row's pretrain_budget beside it) and episodes[row][seed] = per-episode
     arrays (success, spl); results written before per-episode outcomes were kept are
-    taken as stored, without episodes."""
+    taken as stored, without episodes. Every run and result must be on the spec's scenes
+    (check_run_scenes; the results' recorded scenes) and every result of the test split."""
     spec = read_table_spec(out)
+    scenes = table_scenes(spec["config"])
     results: dict = {}
     episodes: dict = {}
     for row in spec["rows"]:
@@ -136,7 +176,8 @@ def read_table_dir(out: Path) -> tuple[dict, dict, dict]:
             path = existing_results(out, row, seed)
             if path is None:
                 continue
-            stored, per = read_results(path)
+            check_run_scenes(run_dir(out, row, seed), scenes)
+            stored, per = read_results(path, "test", scenes)
             if per is not None:
                 episodes.setdefault(row, {})[str(seed)] = {
                     "success": per["success"], "spl": per["spl"]}

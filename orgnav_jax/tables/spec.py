@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from orgnav_jax.constants import DEFAULT_SCENE_PRESET
 from orgnav_jax.errors import INT32_MAX, is_int, shown
 from orgnav_jax.tables.rows import parse_row
 from orgnav_jax.tpn.config import get_tpn_config
@@ -69,3 +70,13 @@ def read_table_spec(out: Path) -> dict:
     if not spec_path.is_file():
         raise ValueError(f"{spec_path}: missing (run_table.py --spec writes it)")
     return read_spec(spec_path)
+
+
+def table_scenes(config: dict) -> str:
+    """The scenes a table's runs are on (its spec's config, or run_table.py's options),
+    named as api.evaluate tags results ('scenes'): the scenes_dir folder's name, else the
+    scene_preset, else the default scene preset (what a config naming none trains on:
+    `small` before 2026-12-05, `calibrated` since; the tables made before name theirs)."""
+    if config.get("scenes_dir"):
+        return Path(config["scenes_dir"]).name
+    return config.get("scene_preset", DEFAULT_SCENE_PRESET)

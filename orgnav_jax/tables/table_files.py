@@ -13,7 +13,7 @@ from orgnav_jax.tables.claims import claims_table
 from orgnav_jax.tables.layout import existing_results, pretrain_dir, run_dir
 from orgnav_jax.tables.provenance import PROVENANCE_FILE, provenance_table, read_provenance
 from orgnav_jax.tables.rows import Row, lr_tag
-from orgnav_jax.tables.runs import read_results, read_table_dir
+from orgnav_jax.tables.runs import check_run_scenes, read_results, read_table_dir
 from orgnav_jax.tables.table import table_text
 
 # tables made before provenance.md existed do not have it: --check compares it where present
@@ -60,16 +60,23 @@ def write_table(out: Path, results: dict[str, dict[str, dict]]) -> str:
     return text
 
 
-def check_run_files(out: Path, rows: list[str], seeds: list[int]) -> None:
+def check_run_files(out: Path, rows: list[str], seeds: list[int],
+                    scenes: str | None = None) -> None:
     """Before any work: every run's results and provenance.json that exist can be read
     (a truncated provenance.json would otherwise stop the table after an evaluation
-    wrote its results)."""
+    wrote its results); with `scenes` (spec.table_scenes of the table's config), every
+    run already in OUT/runs (of these rows or of earlier invocations) and every result
+    is on those scenes (a table resumed across the default scene preset's change put
+    runs of two presets into one row)."""
+    if scenes is not None and (out / "runs").is_dir():
+        for run in sorted((out / "runs").iterdir()):
+            check_run_scenes(run, scenes)
     for name in rows:
         row = Row.of(name)
         for seed in seeds:
             results = existing_results(out, row, seed)
             if results is not None:
-                read_results(results)
+                read_results(results, "test", scenes)
             base_dir = run_dir(out, row, seed)
             read_provenance(base_dir / PROVENANCE_FILE)
             if row.pretrains:
