@@ -180,7 +180,7 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     def steps_per_update(self) -> int:
         """Env steps an update counts for the budget. SAVN: the most an update can take
         (num_envs rows x savn_segments x savn_steps); its budget counts the steps the
-        episodes really took (training/loop.py: savn_stage, issue 40)."""
+        episodes really took (training/loop.py: nav_stage, issue 40)."""
         if self.savn:
             return self.num_envs * self.savn_segments * self.savn_steps
         return self.num_envs * self.rollout_len
@@ -226,6 +226,7 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
                 if not ok:
                     raise ValueError(f"config field {name!r}: {getattr(self, name)!r}, "
                                      f"expected {want} (docs/savn.md)")
+            check_savn_segments(self)
         return self
 
     def to_json(self) -> str:
@@ -276,6 +277,20 @@ def check_word_vectors_fields(cfg: TrainConfig) -> None:
         raise ValueError(f"config field 'word_vectors_sha256': {digest!r}, expected 64 "
                          "lower-case hex digits, with word_vectors (the sha256 of its "
                          "vectors)")
+
+
+def check_savn_segments(cfg: TrainConfig) -> None:
+    """SAVN's fields against the episode cap: a segment must end before the cap for an
+    inner step to happen during training (training/savn.py, savn_loss: `hi < cap`), so
+    savn_steps >= episode_cap would train with no inner step at all; ValueError naming
+    the field otherwise. (More savn_inner_steps than training episodes can hold are
+    allowed: the evaluation's longer caps use them; the memory check bounds their slots,
+    training/memory.py.)"""
+    if cfg.savn_steps >= cfg.episode_cap:
+        raise ValueError(f"config field 'savn_steps': {cfg.savn_steps}, expected < "
+                         f"episode_cap {cfg.episode_cap} with savn: segments of "
+                         f"{cfg.savn_steps} steps leave no inner step in a "
+                         f"{cfg.episode_cap}-step training episode (docs/savn.md)")
 
 
 def check_vtnet(cfg: TrainConfig) -> None:

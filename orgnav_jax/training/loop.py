@@ -1,13 +1,18 @@
-"""Stage 1, navigation training: the jitted A2C chunk on the host loop.
+"""Stage 1, navigation training: the jitted A2C (or SAVN) chunk on the host loop.
 
     result = train(cfg, resume=False)
     results = train_seeds(cfg, seeds=(0, 1, 2))     # one program, a run dir per seed
 
+One path for both: `train_runs` takes the configs (one run, or one per seed), runs the
+one preflight (training/runs.py: every check before anything is written or compiled),
+opens the run directories, builds the stage (`nav_stage`: A2C or SAVN) and runs it on
+the shared host loop (training/driver.py).
+
 Each chunk is `cfg.updates_per_chunk` jitted updates (training/update.py); the host loop
-(training/driver.py) logs, evaluates on the val episodes every `eval_every_chunks`
-chunks keeping the best parameters, and saves the whole RunnerState every
-`checkpoint_every_chunks`. With resume=True it continues from the latest checkpoint and
-ends with the same parameters an uninterrupted run reaches (on the same machine).
+logs, evaluates on the val episodes every `eval_every_chunks` chunks keeping the best
+parameters, and saves the whole RunnerState every `checkpoint_every_chunks`. With
+resume=True it continues from the latest checkpoint and ends with the same parameters an
+uninterrupted run reaches (on the same machine).
 
 With several devices (cfg.devices, training/scale.py) the env axis of the runner is
 sharded over them and the parameters replicated; `train_seeds` trains several seeds of
@@ -19,21 +24,20 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-from pathlib import Path
 
 import jax
 
 from orgnav_jax import env, evaluation
 from orgnav_jax.compile_cache import compiled_once, computation_of
 from orgnav_jax.episodes import sample_episodes
-from orgnav_jax.models import build_model
-from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.errors import UserError
+from orgnav_jax.models import build_model
 from orgnav_jax.training import savn, scale
-from orgnav_jax.training.driver import (
-    Stage, StopRule, run_population, run_stage)
-from orgnav_jax.training.runs import (
-    device_splits, keep_word_vectors, model_policy, preflight)
+from orgnav_jax.training.checkpoints import RunCheckpoints
+from orgnav_jax.training.config import TrainConfig, load_config
+from orgnav_jax.training.driver import Stage, StopRule, run_population
+from orgnav_jax.training.pretrain import load_pretrained
+from orgnav_jax.training.runs import device_splits, model_policy, preflight
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 
 
@@ -63,11 +67,9 @@ def start_from_pretrained(cfg: TrainConfig, runner, resume: bool):
     """The runner with the visual parameters of the pre-training run cfg.pretrained
     (VTNet: training/pretrain.py), unless a resume continues from a checkpoint (which
     holds them: the pre-training run is not read again)."""
-    from orgnav_jax.training.checkpoints import RunCheckpoints
     if cfg.pretrained is None or (resume and RunCheckpoints(cfg.run_dir).latest_step()
                                   is not None):
         return runner
-    from orgnav_jax.training.pretrain import load_pretrained
     return runner.replace(params=load_pretrained(cfg, runner.params))
 
 
@@ -96,9 +98,10 @@ def chunk_summary(m: dict) -> dict:
     return out
 
 
-def evaluate_on_val(model, params, val_scenes, val_episodes) -> dict:
-    """Greedy evaluation on the val episodes -> overall metrics."""
-    return evaluation.evaluate(model_policy(model), params, val_scenes, val_episodes,
+def evaluate_on_val(policy, params, val_scenes, val_episodes) -> dict:
+    """The policy's evaluation on the val episodes -> overall metrics (A2C: greedy; SAVN:
+    with its test-time inner steps and actions, savn.run_policy)."""
+    return evaluation.evaluate(policy, params, val_scenes, val_episodes,
                                env.EnvParams.evaluation())["overall"]
 
 
@@ -110,89 +113,11 @@ def cached_savn_chunk(cfg: TrainConfig, model):
     return optimizer, learned, savn.make_savn_chunk(cfg, model, learned, optimizer)
 
 
-def savn_runner(cfg: TrainConfig, model, train_scenes):
-    optimizer, learned, _ = cached_savn_chunk(compute_config(cfg), model)
-    return savn.init_savn_runner(cfg, model, learned, optimizer, train_scenes,
-                                 jax.random.PRNGKey(cfg.seed))
-
-
-# Config versions whose SAVN runs cannot be resumed by this one (issue 40), each with why:
-# (the first version that does it this way, what a run saved before it did).
-SAVN_RESUME_BREAKS = (
-    # the budget counts the env steps the episodes really took
-    (7, "env_steps count episode slots (every episode at its cap); this version counts the "
-        "env steps the episodes really took"),
-    # the updates refill ended rows (training/savn.py: REFILL_VERSION)
-    (savn.REFILL_VERSION, "updates stepped every episode whole to its cap; this version "
-                          "refills ended rows at segment boundaries and carries running "
-                          "episodes between updates"),
-    # the rows' low-rank slots per LSTM layer (LAYERED_VERSION)
-    (savn.LAYERED_VERSION, "checkpoints hold the running episodes' fast weights with only "
-                           "the first LSTM layer's updates low-rank; this version keeps "
-                           "every layer's low-rank"),
-)
-
-
-def check_savn_resume(run_dir) -> None:
-    """UserError (one line) when run_dir holds a SAVN run of a config version before one
-    of SAVN_RESUME_BREAKS (continuing it would mix two meanings of its count or read its
-    checkpoints in the wrong layout); the first break it predates is named. Nothing to
-    check without a config.json (a new run)."""
-    import json
-    path = Path(run_dir) / "config.json"
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return                     # no saved run (or load_config reports the bad file)
-    version = doc.get("version") if isinstance(doc, dict) else None
-    if not isinstance(version, int) or doc.get("savn") is not True:
-        return
-    for since, why in SAVN_RESUME_BREAKS:
-        if version < since:
-            raise UserError(f"--resume {run_dir}: a SAVN run of config version {version}, "
-                            f"whose {why} (issue 40): start a new run, or evaluate this one "
-                            "as it is")
-
-
-def savn_stage(cfg: TrainConfig, model, train_scenes, val_scenes, val_episodes) -> Stage:
-    """Stage 1 in SAVN mode (training/savn.py): updates of num_envs rows x savn_segments
-    segments with inner steps, ended rows refilled at segment boundaries; val with the
-    test-time inner steps (savn_policy). The budget counts the env steps the episodes
-    really took (the chunk's env_steps_real): the run stops after the first chunk whose
-    running count reaches total_env_steps."""
-    _, learned, chunk = cached_savn_chunk(compute_config(cfg), model)
-    policy = savn.run_policy(cfg, model, val_scenes)
-    return Stage(
-        name=f"train {cfg.model}+savn", unit="step", step_name="env_steps",
-        rate_key="steps_per_s",
-        per_chunk=cfg.updates_per_chunk * cfg.steps_per_update,
-        total=cfg.total_env_steps, steps_key="env_steps_real",
-        chunk=lambda runner: chunk(runner, train_scenes), summarize=chunk_summary,
-        validate=lambda runner: evaluation.evaluate(
-            policy, runner.params, val_scenes, val_episodes,
-            env.EnvParams.evaluation())["overall"],
-        score_keys=("success", "spl"), best_keys=("spl", "success"),
-        progress_keys=("success",))
-
-
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
-          stop_after_chunks: int | None = None) -> dict:
+          stop_after_chunks: int | None = None, stop: StopRule | None = None) -> dict:
     """Train (or resume) the run in cfg.run_dir -> summary dict (best val, env steps).
-    stop_after_chunks ends early (for tests of kill-and-resume)."""
-    if resume and cfg.savn:
-        check_savn_resume(cfg.run_dir)
-    cfg = keep_word_vectors(cfg, resume)     # the run keeps the sha256 of its vectors
-    mesh = scale.make_mesh(cfg.devices)
-    scale.check_batch(cfg.num_envs, mesh)
-    # config ranges, scenes (their widths those of a resumed run's checkpoints), memory:
-    # before anything is written
-    scenes = preflight(cfg, resumed=[cfg.run_dir] if resume else [])
-    if not resume:                # VTNet from a pre-training: that run, before any write
-        from orgnav_jax.training.pretrain import check_pretrained
-        check_pretrained(cfg, scenes)
-    with scale.open_shared_run_dir(cfg.run_dir, cfg, resume, load_config) as run_dir:
-        return _train([cfg], scenes, [run_dir], mesh, resume, progress,
-                      stop_after_chunks)[0]
+    stop_after_chunks ends early (for tests of kill-and-resume); `stop` see train_seeds."""
+    return train_runs([cfg], resume, progress, stop_after_chunks, stop)[0]
 
 
 def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = True,
@@ -211,65 +136,67 @@ def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = 
     cfgs = [dataclasses.replace(cfg, seed=s, run_dir=seed_run_dir(cfg.run_dir, s),
                                 pretrained=cfg.pretrained and seed_run_dir(cfg.pretrained, s))
             for s in seeds]
-    if len(cfgs) == 1:
-        return [train(cfgs[0], resume, progress, stop_after_chunks)]
-    for c in cfgs:
-        c.validate()
-    cfgs = [keep_word_vectors(c, resume) for c in cfgs]
-    mesh = scale.make_mesh(cfg.devices)
-    scale.check_batch(cfg.num_envs, mesh)
-    scenes = preflight(cfgs[0], resumed=[c.run_dir for c in cfgs] if resume else [])
-    if not resume:
-        from orgnav_jax.training.pretrain import check_pretrained
-        for c in cfgs:
-            check_pretrained(c, scenes)
+    return train_runs(cfgs, resume, progress, stop_after_chunks, stop)
+
+
+def train_runs(cfgs: list[TrainConfig], resume: bool, progress: bool,
+               stop_after_chunks: int | None, stop: StopRule | None) -> list[dict]:
+    """Stage 1's one path: the preflight, the run directories opened (checked and
+    locked), the stage built and run -> one summary per config. Several configs (the
+    seeds of train_seeds) train as a population in one program."""
+    cfgs, scenes, mesh = preflight(cfgs, resume)          # before anything is written
     with contextlib.ExitStack() as stack:
         run_dirs = [stack.enter_context(scale.open_shared_run_dir(c.run_dir, c, resume,
                                                                   load_config))
                     for c in cfgs]
-        return _train(cfgs, scenes, run_dirs, mesh, resume, progress, stop_after_chunks,
-                      population=True, stop=stop)
+        stage, runners = nav_stage(cfgs, scenes, mesh, resume)
+        return run_population(stage, runners, cfgs, run_dirs, resume, progress,
+                              stop_after_chunks, stacked=len(cfgs) > 1, stop=stop)
 
 
-def _train(cfgs: list[TrainConfig], scenes, run_dirs: list[Path], mesh, resume: bool,
-           progress: bool, stop_after_chunks: int | None,
-           population: bool = False, stop: StopRule | None = None) -> list[dict]:
+def nav_stage(cfgs: list[TrainConfig], scenes, mesh, resume: bool) -> tuple[Stage, list]:
+    """Stage 1 as the host loop's Stage, and one runner per config (several: a population,
+    the chunk vmapped over the stacked runners), on the train and val splits of the
+    SceneSet preflight loaded (the test rooms of the memory-mapped set are never read).
+
+    A2C (training/update.py): the budget is whole updates of num_envs x rollout_len env
+    steps; with a mesh the env axis is sharded over its devices, the scenes replicated.
+    SAVN (cfg.savn, training/savn.py): updates of num_envs rows x savn_segments segments
+    with inner steps, ended rows refilled at segment boundaries; val with the test-time
+    inner steps (savn.run_policy). Its budget counts the env steps the episodes really
+    took (the chunk's env_steps_real): the run stops after the first chunk whose running
+    count reaches total_env_steps."""
     cfg = cfgs[0]
-    # the train and val splits of the set preflight loaded, on the device; the test rooms
-    # of the memory-mapped set are never read
     train_scenes, val_scenes = device_splits(scenes, "train", "val")
     val_episodes = sample_episodes(val_scenes, cfg.eval_episodes_per_room_type, seed=0,
                                    split="val")
     model = build_model(cfg, train_scenes)
+    chunk_scenes, place = train_scenes, (lambda runner: runner)
     if cfg.savn:
-        if population or mesh is not None:
-            raise UserError("savn: one seed on one device per run (no --seeds population, "
-                            "no --devices mesh yet; docs/savn.md)")
-        return [run_stage(savn_stage(cfg, model, train_scenes, val_scenes, val_episodes),
-                          savn_runner(cfg, model, train_scenes), cfg, run_dirs[0], resume,
-                          progress, stop_after_chunks)]
-    optimizer, train_chunk = cached_train_chunk(compute_config(cfg), model, mesh,
-                                                population)
-    runners = [start_from_pretrained(c, init_runner(c, model, optimizer, train_scenes,
-                                                    jax.random.PRNGKey(c.seed)), resume)
-               for c in cfgs]
-    if mesh is None:
-        chunk_scenes, place = train_scenes, (lambda runner: runner)
-    else:        # the scene set replicated on every device; the env axis sharded
-        chunk_scenes = scale.place(train_scenes, scale.replicated(train_scenes, mesh))
-        place = lambda runner: scale.place(runner, scale.runner_shardings(runner, mesh,
-                                                                         population))
+        optimizer, learned, chunk = cached_savn_chunk(compute_config(cfg), model)
+        runners = [savn.init_savn_runner(c, model, learned, optimizer, train_scenes,
+                                         jax.random.PRNGKey(c.seed)) for c in cfgs]
+        policy = savn.run_policy(cfg, model, val_scenes)
+    else:
+        optimizer, chunk = cached_train_chunk(compute_config(cfg), model, mesh,
+                                              len(cfgs) > 1)
+        runners = [start_from_pretrained(c, init_runner(c, model, optimizer, train_scenes,
+                                                        jax.random.PRNGKey(c.seed)), resume)
+                   for c in cfgs]
+        policy = model_policy(model)
+        if mesh is not None:    # the scene set replicated on every device; the env axis
+            chunk_scenes = scale.place(train_scenes, scale.replicated(train_scenes, mesh))
+            place = lambda runner: scale.place(runner, scale.runner_shardings(  # sharded
+                runner, mesh, len(cfgs) > 1))
     stage = Stage(
-        name=f"train {cfg.model}", unit="step", step_name="env_steps", rate_key="steps_per_s",
+        name=f"train {cfg.model}" + ("+savn" if cfg.savn else ""), unit="step",
+        step_name="env_steps", rate_key="steps_per_s",
         per_chunk=cfg.updates_per_chunk * cfg.steps_per_update,
-        total=cfg.num_updates * cfg.steps_per_update,
-        chunk=lambda runner: train_chunk(runner, chunk_scenes), summarize=chunk_summary,
-        validate=lambda runner: evaluate_on_val(model, scale.local_copy(runner.params), val_scenes,
-                                         val_episodes),
+        total=cfg.total_env_steps if cfg.savn else cfg.num_updates * cfg.steps_per_update,
+        steps_key="env_steps_real" if cfg.savn else None,
+        chunk=lambda runner: chunk(runner, chunk_scenes), summarize=chunk_summary,
+        validate=lambda runner: evaluate_on_val(policy, scale.local_copy(runner.params),
+                                                val_scenes, val_episodes),
         score_keys=("success", "spl"), best_keys=("spl", "success"),
         progress_keys=("success",), place=place)
-    if population:
-        return run_population(stage, runners, cfgs, run_dirs, resume, progress,
-                              stop_after_chunks, stop=stop)
-    return [run_stage(stage, runners[0], cfg, run_dirs[0], resume, progress,
-                      stop_after_chunks)]
+    return stage, runners

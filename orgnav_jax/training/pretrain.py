@@ -39,6 +39,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 
@@ -54,6 +55,7 @@ from orgnav_jax.training.config_fields import CONFIG_VERSION, READABLE_VERSIONS
 from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
 from orgnav_jax.training.run_dir import open_run_dir
+from orgnav_jax.training.runs import checked_scenes, device_splits, scenes_name
 
 STAGE = "pretrain"
 VAL_KEY = 2 ** 20 + 43        # the val draw's key: the same triples for every run
@@ -220,7 +222,6 @@ def val_set(cfg: TrainConfig, val_scenes):
 def dataset_pairs(scenes) -> int:
     """The (state, valid target) pairs of a scene set: the release's dataset size, for
     reading its epochs as samples (docs/vtnet.md)."""
-    import numpy as np
     count = np.asarray(scenes.state_count, np.int64)
     return int((count * np.asarray(scenes.targets).sum(1)).sum())
 
@@ -229,9 +230,8 @@ def pretrain(cfg: PretrainConfig, resume: bool = False, progress: bool = True,
              stop_after_chunks: int | None = None) -> dict:
     """Pre-train (or resume) VTNet's visual transformer in cfg.run_dir -> summary (best
     val accuracy and cross-entropy, samples, compile and wall time)."""
-    from orgnav_jax.training.runs import device_splits, preflight
     cfg.validate()
-    scenes = preflight(cfg, resumed=[cfg.run_dir] if resume else [])
+    scenes = checked_scenes(cfg, resumed=[cfg.run_dir] if resume else [])
     with open_run_dir(cfg.run_dir, cfg, resume, load_pretrain_config) as run_dir:
         train_scenes, val_scenes = device_splits(scenes, "train", "val")
         net = pretrain_network(cfg, train_scenes)
@@ -333,5 +333,4 @@ def check_pretrained(cfg: TrainConfig, scenes=None) -> None:
         raise UserError(f"--pretrained {cfg.pretrained}: no best-on-val checkpoint (the "
                         "pre-training has not reached its first val evaluation)")
     if scenes is not None:
-        from orgnav_jax.training.runs import scenes_name
         ckpt.check_scenes(scenes, scenes_name(cfg), best=True)

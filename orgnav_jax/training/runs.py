@@ -1,19 +1,116 @@
-"""What a training run needs and gives: its scenes (scenes_for, preflight checks), its
-model and params (load_run_model), and the model as a greedy evaluation Policy."""
+"""What a training run needs and gives: stage 1's one preflight (every check before a
+run writes or compiles anything: `preflight`), its scenes (scenes_for), its model and
+params (load_run_model), and the model as a greedy evaluation Policy.
+
+    cfgs, scenes, mesh = preflight([cfg], resume)     # stage 1 (training/loop.py)
+    scenes = checked_scenes(cfg, resumed)             # the scenes' part (pre-training too)
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from orgnav_jax.compile_cache import compiled_once
+from orgnav_jax.constants import split_index
+from orgnav_jax.errors import UserError
 from orgnav_jax.evaluation import Policy
 from orgnav_jax.models import build_model, init_params, model_inputs, reset_carry
+from orgnav_jax.models.word_vectors import category_table
+from orgnav_jax.scenes import load_scenes
+from orgnav_jax.training import savn, scale
 from orgnav_jax.training.checkpoints import RunCheckpoints
-from orgnav_jax.training.config import TrainConfig, load_config
+from orgnav_jax.training.config import SAVN_ACTS, TrainConfig, load_config
+from orgnav_jax.training.memory import check_memory, check_tpn_memory
+from orgnav_jax.training.run_dir import is_run_dir
+from orgnav_jax.training.update import init_runner, make_optimizer
+
+
+def preflight(cfgs: list[TrainConfig], resume: bool = False):
+    """Every check before stage 1 writes or compiles anything, for one run or a
+    population (one config per seed, trained in one program) -> (the configs with the
+    sha256 of their word vectors, the SceneSet they train on, the device mesh). In order:
+    each config's own validation (TrainConfig.validate), where it runs (SAVN: one seed on
+    one device; num_envs over the mesh's devices), the run directories' (a resumed SAVN
+    run of an older config version; the word vectors a run keeps), the scenes'
+    (checked_scenes: train and val rooms, a resumed run's feature widths, the memory
+    estimate), and the pre-training a VTNet starts from (check_pretrained). One-line
+    errors (UserError, ValueError, OSError) naming the field, file or directory."""
+    for c in cfgs:
+        c.validate()
+    cfg = cfgs[0]
+    mesh = scale.make_mesh(cfg.devices)
+    if cfg.savn and (len(cfgs) > 1 or mesh is not None):
+        raise UserError("savn: one seed on one device per run (no --seeds population, "
+                        "no --devices mesh yet; docs/savn.md)")
+    scale.check_batch(cfg.num_envs, mesh)
+    if resume and cfg.savn:
+        check_savn_resume(cfg.run_dir)
+    cfgs = [keep_word_vectors(c, resume) for c in cfgs]   # the sha256 the runs keep
+    scenes = checked_scenes(cfgs[0], resumed=[c.run_dir for c in cfgs] if resume else [])
+    if not resume:                # VTNet from a pre-training: that run, before any write
+        from orgnav_jax.training.pretrain import check_pretrained
+        for c in cfgs:
+            check_pretrained(c, scenes)
+    return cfgs, scenes, mesh
+
+
+def checked_scenes(cfg: TrainConfig, resumed=()):
+    """The SceneSet cfg trains on (memory-mapped), checked before a run writes or compiles
+    anything: cfg's word-vector file, train and val rooms in the scenes, the scenes'
+    feature widths those the checkpoints of the `resumed` run directories were trained on
+    (before any model is built), and one jitted chunk's memory estimate against the
+    memory available (training.memory.check_memory)."""
+    check_word_vectors(cfg, "--word-vectors-sha256")   # a missing or malformed file, or
+    scenes = scenes_for(cfg)                         # other vectors: one line
+    check_training_scenes(scenes, cfg)
+    for run_dir in resumed:
+        if (Path(run_dir) / "checkpoints").is_dir():     # nothing is created elsewhere
+            RunCheckpoints(run_dir).check_scenes(scenes, scenes_name(cfg))
+    check_memory(cfg, scenes)
+    return scenes
+
+
+# Config versions whose SAVN runs cannot be resumed by this one (issue 40), each with why:
+# (the first version that does it this way, what a run saved before it did).
+SAVN_RESUME_BREAKS = (
+    # the budget counts the env steps the episodes really took
+    (7, "env_steps count episode slots (every episode at its cap); this version counts the "
+        "env steps the episodes really took"),
+    # the updates refill ended rows (training/savn.py: REFILL_VERSION)
+    (savn.REFILL_VERSION, "updates stepped every episode whole to its cap; this version "
+                          "refills ended rows at segment boundaries and carries running "
+                          "episodes between updates"),
+    # the rows' low-rank slots per LSTM layer (LAYERED_VERSION)
+    (savn.LAYERED_VERSION, "checkpoints hold the running episodes' fast weights with only "
+                           "the first LSTM layer's updates low-rank; this version keeps "
+                           "every layer's low-rank"),
+)
+
+
+def check_savn_resume(run_dir) -> None:
+    """UserError (one line) when run_dir holds a SAVN run of a config version before one
+    of SAVN_RESUME_BREAKS (continuing it would mix two meanings of its count or read its
+    checkpoints in the wrong layout); the first break it predates is named. Nothing to
+    check without a config.json (a new run)."""
+    path = Path(run_dir) / "config.json"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return                     # no saved run (or load_config reports the bad file)
+    version = doc.get("version") if isinstance(doc, dict) else None
+    if not isinstance(version, int) or doc.get("savn") is not True:
+        return
+    for since, why in SAVN_RESUME_BREAKS:
+        if version < since:
+            raise UserError(f"--resume {run_dir}: a SAVN run of config version {version}, "
+                            f"whose {why} (issue 40): start a new run, or evaluate this one "
+                            "as it is")
 
 
 @compiled_once
@@ -39,7 +136,6 @@ def scenes_for(cfg: TrainConfig):
     """The full SceneSet a config trains on (cached preset or a saved directory),
     memory-mapped: nothing of it is read until a split view is used (scenes/synthetic/cache.py; the
     last one loaded is kept)."""
-    from orgnav_jax.scenes import load_scenes
     return load_scenes(cfg.scene_preset, cfg.scene_seed, cfg.scenes_dir)
 
 
@@ -57,35 +153,11 @@ def scenes_name(cfg: TrainConfig) -> str:
 def check_training_scenes(scenes, cfg: TrainConfig) -> None:
     """Training needs train rooms to learn on and val rooms to select the best checkpoint
     (SceneSet.split); ValueError naming the scene set otherwise."""
-    import numpy as np
-
-    from orgnav_jax.constants import split_index
     split = np.asarray(scenes.split)
     for name, why in (("train", "to learn on"), ("val", "to select the best checkpoint")):
         if not (split == split_index(name)).any():
             raise ValueError(f"scenes {scenes_name(cfg)} have no {name} rooms (split field): "
                              f"training needs {name} rooms {why}")
-
-
-def preflight(cfg: TrainConfig, resumed=()):
-    """Checks before a training run writes or compiles anything -> its SceneSet: the
-    config's ranges, train and val rooms in the scenes, the scenes' feature widths those
-    the checkpoints of the `resumed` run directories were trained on (before any model
-    is built), and one jitted chunk's memory estimate against the memory available
-    (training.memory.check_memory)."""
-    from orgnav_jax.training.memory import check_memory
-    cfg.validate()
-    if cfg.savn:
-        from orgnav_jax.training.savn import check_savn_config
-        check_savn_config(cfg)
-    check_word_vectors(cfg, "--word-vectors-sha256")   # a missing or malformed file, or
-    scenes = scenes_for(cfg)                         # other vectors: one line
-    check_training_scenes(scenes, cfg)
-    for run_dir in resumed:
-        if (Path(run_dir) / "checkpoints").is_dir():     # nothing is created elsewhere
-            RunCheckpoints(run_dir).check_scenes(scenes, scenes_name(cfg))
-    check_memory(cfg, scenes)
-    return scenes
 
 
 def check_word_vectors(cfg: TrainConfig, whose: str) -> str | None:
@@ -95,7 +167,6 @@ def check_word_vectors(cfg: TrainConfig, whose: str) -> str | None:
     not theirs: a run is never evaluated or resumed with other vectors than its own."""
     if not cfg.word_vectors:
         return None
-    from orgnav_jax.models.word_vectors import category_table
     table = category_table(cfg.word_vectors)
     kept = cfg.word_vectors_sha256
     if kept is not None and kept != table.sha256:
@@ -115,7 +186,6 @@ def keep_word_vectors(cfg: TrainConfig, resume: bool = False) -> TrainConfig:
         return cfg
     whose = f"the run {cfg.run_dir}" if resume else "--word-vectors-sha256"
     if cfg.word_vectors_sha256 is None and resume:
-        from orgnav_jax.training.run_dir import is_run_dir
         if not is_run_dir(cfg.run_dir):
             return cfg                   # check_run_dir: "holds no run"
         kept = load_config(cfg.run_dir).word_vectors_sha256
@@ -136,7 +206,6 @@ def check_tpn_base(nav_cfg: TrainConfig, base_dir) -> None:
 
 def preflight_tpn(cfg, nav_cfg: TrainConfig):
     """preflight for stage 2: the TPN config on the base run's config and scenes."""
-    from orgnav_jax.training.memory import check_tpn_memory
     cfg.validate()
     check_tpn_base(nav_cfg, cfg.base_dir)
     scenes = scenes_for(nav_cfg)
@@ -148,7 +217,6 @@ def preflight_tpn(cfg, nav_cfg: TrainConfig):
 def _saved_version(run_dir) -> int:
     """The config version a run directory was saved with (its config.json was read and
     checked by load_config before)."""
-    import json
     return int(json.loads((Path(run_dir) / "config.json").read_text())["version"])
 
 
@@ -164,9 +232,7 @@ def load_run_model(run_dir: str | Path, best: bool = True):
     ckpt.check_scenes(scenes, scenes_name(cfg), best)      # before the model is built
     train = scenes.split_view("train")
     model = build_model(cfg, train)
-    from orgnav_jax.training.update import init_runner, make_optimizer
     if cfg.savn:       # {"nav", "ll"}: the navigation model and SAVN's learned loss
-        from orgnav_jax.training import savn
         like = jax.eval_shape(lambda s: savn.init_meta(
             model, savn.build_learned_loss(), cfg, s, jax.random.PRNGKey(0)), train)
         if best:
@@ -200,8 +266,6 @@ def load_run_policy(run_dir: str | Path, best: bool = True, savn_act: str | None
     ("greedy" | "sample") overrides a SAVN run's test-time actions (config.savn_act)."""
     model, params, cfg = load_run_model(run_dir, best)
     if savn_act is not None:
-        from orgnav_jax.errors import UserError
-        from orgnav_jax.training.config import SAVN_ACTS
         if not cfg.savn:
             raise UserError(f"--savn-act: {run_dir} is a {cfg.model} run without SAVN: "
                             "expected a SAVN or D-SAVN run directory")
@@ -209,6 +273,5 @@ def load_run_policy(run_dir: str | Path, best: bool = True, savn_act: str | None
             raise UserError(f"--savn-act {savn_act!r}: expected one of {list(SAVN_ACTS)}")
         cfg = dataclasses.replace(cfg, savn_act=savn_act)
     if cfg.savn:       # with SAVN's test-time inner steps (training/savn.py)
-        from orgnav_jax.training import savn
         return savn.run_policy(cfg, model, scenes_for(cfg)), params, cfg
     return model_policy(model, cfg.model), params, cfg

@@ -347,20 +347,6 @@ def inner_row(model, learned, shared, dense, ux, uh, v, carry, inputs, ll_params
     return _unbatch(inner_rows(model, learned, shared, *batched, first_order=first_order))
 
 
-def check_savn_config(cfg) -> None:
-    """SAVN's fields against the episode cap, before a run writes anything: a segment
-    must end before the cap for an inner step to happen during training
-    (savn_loss: `hi < cap`), so savn_steps >= episode_cap would train with no inner step
-    at all; ValueError naming the field otherwise. (More savn_inner_steps than training
-    episodes can hold are allowed: the evaluation's longer caps use them; the memory
-    check bounds their slots, training/memory.py.)"""
-    if cfg.savn_steps >= cfg.episode_cap:
-        raise ValueError(f"config field 'savn_steps': {cfg.savn_steps}, expected < "
-                         f"episode_cap {cfg.episode_cap} with savn: segments of "
-                         f"{cfg.savn_steps} steps leave no inner step in a "
-                         f"{cfg.episode_cap}-step training episode (docs/savn.md)")
-
-
 def build_learned_loss() -> LearnedLoss:
     return LearnedLoss()
 
