@@ -22,6 +22,7 @@ from orgnav_jax.training.config_fields import (
     READABLE_VERSIONS, RUN_RANGES, SEED, Range, add_field_options, budget_notice,
     check_ranges, check_types, given_options, run_fields,
 )
+from orgnav_jax.training.run_dir import read_config
 
 # Fields a version-2 config lacks, with the values those runs were trained with.
 V2_DEFAULTS = {"il_norm": "masked_mean", "il_step": "state"}
@@ -445,7 +446,6 @@ def get_config(preset: str = "small", **overrides) -> TrainConfig:
 
 def load_config(run_dir: str | Path) -> TrainConfig:
     """The TrainConfig saved in a training run directory (run_dir.read_config)."""
-    from orgnav_jax.training.run_dir import read_config
     return read_config(run_dir, TrainConfig, "nav", READABLE_VERSIONS,
                        {2: {**V2_DEFAULTS, **V3_DEFAULTS, **V5_DEFAULTS, **V6_DEFAULTS,
                             **V7_DEFAULTS, **V8_DEFAULTS},
@@ -466,6 +466,53 @@ SCENE_PRESET_MISSING = (
     "expected the scene preset the run was trained on (this program writes it in every "
     "run's config; the default was 'small' before 2026-12-05 and is 'calibrated' since): "
     'add it, e.g. "scene_preset": "small"')
+
+
+PRETRAIN_STAGE = "pretrain"      # a pre-training run's config.json (run_dir.STAGES)
+
+
+@dataclasses.dataclass(frozen=True)
+class PretrainConfig(TrainConfig):
+    """A pre-training run's config: the TrainConfig of the VTNet it pre-trains (model
+    widths, scenes, seed, dtype, the pretrain_* fields), saved with stage "pretrain"."""
+
+    @classmethod
+    def of(cls, cfg: TrainConfig, **changes) -> "PretrainConfig":
+        return cls(**{**dataclasses.asdict(cfg), **changes}).validate()
+
+    def validate(self) -> "PretrainConfig":
+        super().validate()
+        if self.model != "vtnet":
+            raise ValueError(f"config field 'model': {self.model!r}, expected 'vtnet' "
+                             "(pre-training trains VTNet's visual transformer)")
+        if self.pretrained is not None:
+            raise ValueError(f"config field 'pretrained': {self.pretrained!r}, expected "
+                             "null in a pre-training run (it starts from the release's "
+                             "initialisation)")
+        return self
+
+    @property
+    def num_updates(self) -> int:
+        return max(1, self.pretrain_samples // self.pretrain_batch)
+
+    @property
+    def total_samples(self) -> int:
+        """The samples the budget trains: whole batches (pretrain_samples rounded down)."""
+        return self.num_updates * self.pretrain_batch
+
+    def budget_notice(self) -> str | None:
+        return budget_notice("pretrain_samples", self.pretrain_samples, self.pretrain_batch,
+                             self.updates_per_chunk, f"batches of {self.pretrain_batch}")
+
+    def to_json(self) -> str:
+        return json.dumps({"version": CONFIG_VERSION, "stage": PRETRAIN_STAGE,
+                           **dataclasses.asdict(self)}, indent=1)
+
+
+def load_pretrain_config(run_dir: str | Path) -> PretrainConfig:
+    """The PretrainConfig saved in a pre-training run directory (one-line errors)."""
+    return read_config(run_dir, PretrainConfig, PRETRAIN_STAGE, READABLE_VERSIONS,
+                       required={"scene_preset": SCENE_PRESET_MISSING})
 
 
 def add_config_arguments(ap: argparse.ArgumentParser) -> None:

@@ -37,6 +37,7 @@ from orgnav_jax.training.checkpoints import RunCheckpoints
 from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.training.driver import Stage, StopRule, run_population
 from orgnav_jax.training.pretrain import load_pretrained
+from orgnav_jax.training.run_dir import seed_run_dir
 from orgnav_jax.training.runs import device_splits, model_policy, preflight
 from orgnav_jax.training.update import init_runner, make_optimizer, make_train_chunk
 
@@ -81,11 +82,6 @@ def cached_train_chunk(cfg: TrainConfig, model, mesh=None, population: bool = Fa
     optimizer = make_optimizer(cfg)
     return optimizer, make_train_chunk(cfg, model, optimizer, mesh=mesh,
                                        population=population)
-
-
-def seed_run_dir(run_dir: str, seed: int) -> str:
-    """The run directory of one seed of a population: <run_dir>-s<seed>."""
-    return f"{str(run_dir).rstrip('/')}-s{seed}"
 
 
 def chunk_summary(m: dict) -> dict:

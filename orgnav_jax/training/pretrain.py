@@ -25,16 +25,13 @@ parameters are kept (best/), and the A2C stage starts from them (load_pretrained
 The budget counts samples (pretrain_samples), the unit of the progress bar and the log's
 step ("samples").
 
-A pre-training run's directory holds a PretrainConfig: the VTNet's TrainConfig saved with
-stage "pretrain", so neither kind of run is mistaken for the other.
+A pre-training run's directory holds a PretrainConfig (training/config.py): the VTNet's
+TrainConfig saved with stage "pretrain", so neither kind of run is mistaken for the other.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
-from pathlib import Path
 from typing import Any
 
 import jax
@@ -50,61 +47,14 @@ from orgnav_jax.errors import UserError
 from orgnav_jax.models import build_model, dropout_mask, model_inputs
 from orgnav_jax.models.vtnet import VTNetPretrain, is_visual, pretrain_init
 from orgnav_jax.training.checkpoints import RunCheckpoints
-from orgnav_jax.training.config import SCENE_PRESET_MISSING, TrainConfig
-from orgnav_jax.training.config_fields import CONFIG_VERSION, READABLE_VERSIONS
+from orgnav_jax.training.config import (  # noqa: F401  (PretrainConfig re-exported)
+    PretrainConfig, TrainConfig, load_pretrain_config)
 from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
 from orgnav_jax.training.run_dir import open_run_dir
-from orgnav_jax.training.runs import checked_scenes, device_splits, scenes_name
+from orgnav_jax.training.runs import check_pretrained, checked_scenes, device_splits
 
-STAGE = "pretrain"
 VAL_KEY = 2 ** 20 + 43        # the val draw's key: the same triples for every run
-
-
-@dataclasses.dataclass(frozen=True)
-class PretrainConfig(TrainConfig):
-    """A pre-training run's config: the TrainConfig of the VTNet it pre-trains (model
-    widths, scenes, seed, dtype, the pretrain_* fields), saved with stage "pretrain"."""
-
-    @classmethod
-    def of(cls, cfg: TrainConfig, **changes) -> "PretrainConfig":
-        return cls(**{**dataclasses.asdict(cfg), **changes}).validate()
-
-    def validate(self) -> "PretrainConfig":
-        super().validate()
-        if self.model != "vtnet":
-            raise ValueError(f"config field 'model': {self.model!r}, expected 'vtnet' "
-                             "(pre-training trains VTNet's visual transformer)")
-        if self.pretrained is not None:
-            raise ValueError(f"config field 'pretrained': {self.pretrained!r}, expected "
-                             "null in a pre-training run (it starts from the release's "
-                             "initialisation)")
-        return self
-
-    @property
-    def num_updates(self) -> int:
-        return max(1, self.pretrain_samples // self.pretrain_batch)
-
-    @property
-    def total_samples(self) -> int:
-        """The samples the budget trains: whole batches (pretrain_samples rounded down)."""
-        return self.num_updates * self.pretrain_batch
-
-    def budget_notice(self) -> str | None:
-        from orgnav_jax.training.config_fields import budget_notice
-        return budget_notice("pretrain_samples", self.pretrain_samples, self.pretrain_batch,
-                             self.updates_per_chunk, f"batches of {self.pretrain_batch}")
-
-    def to_json(self) -> str:
-        return json.dumps({"version": CONFIG_VERSION, "stage": STAGE,
-                           **dataclasses.asdict(self)}, indent=1)
-
-
-def load_pretrain_config(run_dir: str | Path) -> PretrainConfig:
-    """The PretrainConfig saved in a pre-training run directory (one-line errors)."""
-    from orgnav_jax.training.run_dir import read_config
-    return read_config(run_dir, PretrainConfig, STAGE, READABLE_VERSIONS,
-                       required={"scene_preset": SCENE_PRESET_MISSING})
 
 
 @struct.dataclass
@@ -308,29 +258,3 @@ def _copy_visual(saved, params):
     what = (f"its parameters do not fit this model ({', '.join(missing[:3])}): pre-train "
             "with the same VTNet widths") if missing else ""
     return out, what
-
-
-# the fields that shape (or change) the pre-trained network: a run starting from a
-# pre-training must have the same
-VISUAL_FIELDS = ("vtnet_dim", "vtnet_heads", "vtnet_ffn", "vtnet_encoder_layers",
-                 "vtnet_decoder_layers", "vtnet_mask", "fuse_channels")
-
-
-def check_pretrained(cfg: TrainConfig, scenes=None) -> None:
-    """Before a run that starts from cfg.pretrained writes anything: that directory holds
-    a VTNet pre-training with a best-on-val checkpoint, of cfg's VTNet widths (and of
-    `scenes`' feature widths, if given); UserError / ValueError in one line otherwise."""
-    if cfg.pretrained is None:
-        return
-    pre = load_pretrain_config(cfg.pretrained)
-    differ = [f"{f} {getattr(pre, f)!r} (this run: {getattr(cfg, f)!r})"
-              for f in VISUAL_FIELDS if getattr(pre, f) != getattr(cfg, f)]
-    if differ:
-        raise UserError(f"--pretrained {cfg.pretrained}: pre-trained with "
-                        f"{', '.join(differ)}: pre-train with this run's VTNet fields")
-    ckpt = RunCheckpoints(cfg.pretrained)
-    if ckpt.best.latest_step() is None:
-        raise UserError(f"--pretrained {cfg.pretrained}: no best-on-val checkpoint (the "
-                        "pre-training has not reached its first val evaluation)")
-    if scenes is not None:
-        ckpt.check_scenes(scenes, scenes_name(cfg), best=True)

@@ -50,6 +50,11 @@ STAGES = {"nav": "training", "tpn": "TPN (stage 2)",   # the kinds of run, in wo
           "pretrain": "VTNet pre-training"}
 
 
+def seed_run_dir(run_dir: str, seed: int) -> str:
+    """The run directory of one seed of a population: <run_dir>-s<seed>."""
+    return f"{str(run_dir).rstrip('/')}-s{seed}"
+
+
 def read_config(run_dir: str | os.PathLike, cls, stage: str, versions: tuple[int, ...],
                 upgrades: dict[int, dict] | None = None,
                 renames: dict[int, dict[str, str]] | None = None,

@@ -25,7 +25,8 @@ from orgnav_jax.models.word_vectors import category_table
 from orgnav_jax.scenes import load_scenes
 from orgnav_jax.training import savn, scale
 from orgnav_jax.training.checkpoints import RunCheckpoints
-from orgnav_jax.training.config import SAVN_ACTS, TrainConfig, load_config
+from orgnav_jax.training.config import (
+    SAVN_ACTS, TrainConfig, load_config, load_pretrain_config)
 from orgnav_jax.training.memory import check_memory, check_tpn_memory
 from orgnav_jax.training.run_dir import is_run_dir
 from orgnav_jax.training.update import init_runner, make_optimizer
@@ -54,7 +55,6 @@ def preflight(cfgs: list[TrainConfig], resume: bool = False):
     cfgs = [keep_word_vectors(c, resume) for c in cfgs]   # the sha256 the runs keep
     scenes = checked_scenes(cfgs[0], resumed=[c.run_dir for c in cfgs] if resume else [])
     if not resume:                # VTNet from a pre-training: that run, before any write
-        from orgnav_jax.training.pretrain import check_pretrained
         for c in cfgs:
             check_pretrained(c, scenes)
     return cfgs, scenes, mesh
@@ -74,6 +74,32 @@ def checked_scenes(cfg: TrainConfig, resumed=()):
             RunCheckpoints(run_dir).check_scenes(scenes, scenes_name(cfg))
     check_memory(cfg, scenes)
     return scenes
+
+
+# the fields that shape (or change) the pre-trained network: a run starting from a
+# pre-training must have the same
+VISUAL_FIELDS = ("vtnet_dim", "vtnet_heads", "vtnet_ffn", "vtnet_encoder_layers",
+                 "vtnet_decoder_layers", "vtnet_mask", "fuse_channels")
+
+
+def check_pretrained(cfg: TrainConfig, scenes=None) -> None:
+    """Before a run that starts from cfg.pretrained writes anything: that directory holds
+    a VTNet pre-training with a best-on-val checkpoint, of cfg's VTNet widths (and of
+    `scenes`' feature widths, if given); UserError / ValueError in one line otherwise."""
+    if cfg.pretrained is None:
+        return
+    pre = load_pretrain_config(cfg.pretrained)
+    differ = [f"{f} {getattr(pre, f)!r} (this run: {getattr(cfg, f)!r})"
+              for f in VISUAL_FIELDS if getattr(pre, f) != getattr(cfg, f)]
+    if differ:
+        raise UserError(f"--pretrained {cfg.pretrained}: pre-trained with "
+                        f"{', '.join(differ)}: pre-train with this run's VTNet fields")
+    ckpt = RunCheckpoints(cfg.pretrained)
+    if ckpt.best.latest_step() is None:
+        raise UserError(f"--pretrained {cfg.pretrained}: no best-on-val checkpoint (the "
+                        "pre-training has not reached its first val evaluation)")
+    if scenes is not None:
+        ckpt.check_scenes(scenes, scenes_name(cfg), best=True)
 
 
 # Config versions whose SAVN runs cannot be resumed by this one (issue 40), each with why:
