@@ -16,7 +16,7 @@ from typing import Literal, get_args
 from orgnav_jax.training.config_fields import (
     CONFIG_VERSION, COUNT, EPISODE_CAP, OLD_RENAMES, POSITIVE, READABLE_VERSIONS, RUN_RANGES,
     Range, add_field_options, budget_notice, check_ranges, check_types, given_options,
-    run_fields,
+    host_only, run_fields,
 )
 from orgnav_jax.training.run_dir import read_config
 
@@ -84,7 +84,9 @@ class TPNConfig(run_fields(updates_per_chunk=10, eval_every_chunks=5,
     # + the run's bookkeeping, declared in config_fields.run_fields (these defaults;
     # run_dir "": <base_dir>/tpn): updates_per_chunk, eval_every_chunks,
     # eval_episodes_per_room_type, checkpoint_every_chunks, keep_checkpoints, seed, run_dir
-    base_dir: str = ""                # the trained navigation run (its best-on-val params)
+    # host_only: stage 2's programs do not read the base's directory, the budget or the
+    # test-time update's fields (the test-time policy's key is TestTime)
+    base_dir: str = host_only("", "tpn")   # the trained navigation run (best-on-val params)
     # the network (models.tpn_net.TPN; the release's head, other widths from the base's)
     action_embed: int = 6             # width of the embedded policy probabilities
     top_k: int = 10                   # memory slots read per step
@@ -99,15 +101,18 @@ class TPNConfig(run_fields(updates_per_chunk=10, eval_every_chunks=5,
     optim: StageOptim = "release"     # the release's (STAGE2_OPTIM; chosen on val) | Adam (ours)
     lr: float = 3e-4
     max_grad_norm: float = 10.0
-    total_episodes: int = 40_000
+    total_episodes: int = host_only(40_000, "tpn")
     # test time (evaluation with --tpn)
-    tpn_lr: float = TPN_LR            # one SGD step per update step (chosen on val)
-    scope: Scope = "all"                # all (the release's) | trunk (above the encoder) | actor
-    when: When = "deadlock"
-    target: Target = "tpn"
-    reset_every: int = 50             # fast weights back to the trained ones every N steps
-                                      # of an episode (the release's 50); 0: at its start only
-    tpn_train_mode: bool = False      # the release's confound: dropout active with TPN
+    tpn_lr: float = host_only(TPN_LR, "tpn")   # one SGD step per update step (val chose)
+    scope: Scope = host_only("all", "tpn")   # all (the release's) | trunk (above the
+                                             # encoder) | actor
+    when: When = host_only("deadlock", "tpn")
+    target: Target = host_only("tpn", "tpn")
+    reset_every: int = host_only(50, "tpn")   # fast weights back to the trained ones every
+                                      # N steps of an episode (the release's 50); 0: at its
+                                      # start only
+    tpn_train_mode: bool = host_only(False, "tpn")   # the release's confound: dropout
+                                                     # active with TPN
     placement: Placement = "release"  # where the TPN acts, both stages (Placement above;
                                       # chosen on val, issue 41)
 

@@ -38,6 +38,7 @@ from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
 from orgnav_jax.tpn.test_time import build_tpn, init_tpn_params
 from orgnav_jax.training.config import load_config
+from orgnav_jax.training.config_fields import host_only_fields
 from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
 from orgnav_jax.training.run_dir import open_run_dir
@@ -153,12 +154,10 @@ def make_tpn_chunk(cfg: TPNConfig, model, tpn, optimizer):
 
 
 # The fields stage 2's programs do not read (the host loop's bookkeeping and the
-# test-time update's fields): runs that differ only in them share one compiled chunk,
-# val collection and val loss (compile_cache.py).
-HOST_ONLY_FIELDS = ("run_dir", "base_dir", "total_episodes", "eval_every_chunks",
-                    "eval_episodes_per_room_type", "checkpoint_every_chunks",
-                    "keep_checkpoints", "seed", "tpn_lr", "scope", "when", "target",
-                    "reset_every", "tpn_train_mode")
+# test-time update's fields), marked host_only next to each field (tpn/config.py): runs
+# that differ only in them share one compiled chunk, val collection and val loss
+# (compile_cache.py).
+HOST_ONLY_FIELDS = host_only_fields(TPNConfig, "tpn")
 
 
 @compiled_once

@@ -20,7 +20,7 @@ from orgnav_jax.constants import DEFAULT_SCENE_PRESET
 from orgnav_jax.training.config_fields import (
     CONFIG_VERSION, COUNT, EPISODE_CAP, FINITE, NON_NEGATIVE, OLD_RENAMES, POSITIVE,
     READABLE_VERSIONS, RUN_RANGES, SEED, Range, add_field_options, budget_notice,
-    check_ranges, check_types, given_options, run_fields,
+    check_ranges, check_types, given_options, host_only, run_fields,
 )
 from orgnav_jax.training.run_dir import read_config
 
@@ -88,10 +88,13 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     # + the run's bookkeeping, declared in config_fields.run_fields (these defaults; a
     # preset's run_dir: default_run_dir): updates_per_chunk, eval_every_chunks,
     # eval_episodes_per_room_type, checkpoint_every_chunks, keep_checkpoints, seed, run_dir
-    # data
-    scene_preset: str = DEFAULT_SCENE_PRESET   # scene preset built and cached (orgnav_jax.scenes)
-    scenes_dir: str | None = None     # or a saved / imported SceneSet directory
-    scene_seed: int = 0
+    # data. Host-only (host_only: no jitted program reads them; they only say where the
+    # rooms come from: the rooms are the programs' input, their shapes key jit's own
+    # cache, and their feature widths are in the model)
+    scene_preset: str = host_only(DEFAULT_SCENE_PRESET)   # scene preset built and cached
+                                                          # (orgnav_jax.scenes)
+    scenes_dir: str | None = host_only(None)   # or a saved / imported SceneSet directory
+    scene_seed: int = host_only(0)
     # model
     model: str = "baseline"           # baseline | we | org | org_released | dsp | dsp_replace
     glob_channels: int = 16
@@ -126,15 +129,17 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     # training rooms; AdamW, gradient-norm clip, the lr x0.1 every pretrain_lr_drop
     # samples (0: never). pretrained: a pre-training run whose best-on-val visual
     # parameters start this run's, trained at pretrained_lr_scale x lr (the release's
-    # pretrained_lr 1e-5 against lr 1e-4)
-    pretrain_samples: int = 4_000_000    # chosen on val (seed 100; docs/vtnet.md)
-    pretrain_batch: int = 128
-    pretrain_lr: float = 1e-4
-    pretrain_weight_decay: float = 1e-4
-    pretrain_lr_drop: int = 0
-    pretrain_clip: float = 0.1
-    pretrain_val_samples: int = 4096
-    pretrained: str | None = None
+    # pretrained_lr 1e-5 against lr 1e-4). The pre-training's own fields are host-only
+    # in stage 1 ("nav"), its budgets in both stages
+    pretrain_samples: int = host_only(4_000_000)   # chosen on val (seed 100; docs/vtnet.md)
+    pretrain_batch: int = host_only(128, "nav")
+    pretrain_lr: float = host_only(1e-4, "nav")
+    pretrain_weight_decay: float = host_only(1e-4, "nav")
+    pretrain_lr_drop: int = host_only(0, "nav")
+    pretrain_clip: float = host_only(0.1, "nav")
+    pretrain_val_samples: int = host_only(4096)
+    pretrained: str | None = host_only(None, "pretrain")   # stage 1 reads whether there is
+                                      # one, not where (training/loop.py: compute_config)
     pretrained_lr_scale: float = 0.1
     # imitation (trial-driven IL): none | deadlock | all | failed (see IL_MODES, IL_STEPS)
     il: ILMode = "none"
@@ -158,10 +163,11 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     gae_lambda: float = 0.95
     entropy_coef: float = 0.01
     value_coef: float = 0.5
-    total_env_steps: int = 3_000_000
+    total_env_steps: int = host_only(3_000_000)   # the budget: the host counts it
     # scale-out (docs/scale_out.md)
-    devices: int = 0                  # devices per process the env axis is sharded over
-                                      # (0: all local devices); a resume may change it
+    devices: int = host_only(0)       # devices per process the env axis is sharded over
+                                      # (0: all local devices); a resume may change it.
+                                      # Host-only: the mesh is a key of its own
     dtype: DType = "float32"          # bfloat16: bf16 matmuls, float32 parameters
     # SAVN (training/savn.py, docs/savn.md): episodes cut into segments of savn_steps
     # steps; after each of the first savn_inner_steps segments that did not end the

@@ -41,23 +41,45 @@ BUDGET_MAX = 10 ** 12
 BUDGETS_FIELDS = ("total_env_steps", "total_episodes")
 
 
+# Field metadata: the stages whose jitted programs do not read a field, of "nav" (stage 1),
+# "pretrain" (VTNet's pre-training) and "tpn" (stage 2), as run_dir.STAGES names them.
+# Runs that differ only in such fields share one compiled program: the programs' cache
+# key is the config with them reset (compile_cache.py: computation_of, host_only_fields).
+HOST_ONLY = "host_only"
+STAGE_NAMES = ("nav", "pretrain", "tpn")
+
+
+def host_only(default, *stages: str):
+    """A config field (its default) that only the host reads in `stages` (none given:
+    in every stage): their jitted programs do not read it (HOST_ONLY)."""
+    return dataclasses.field(default=default, metadata={HOST_ONLY: stages or STAGE_NAMES})
+
+
+def host_only_fields(cls, stage: str) -> tuple[str, ...]:
+    """The fields of a config class that `stage`'s jitted programs do not read."""
+    return tuple(f.name for f in dataclasses.fields(cls)
+                 if stage in f.metadata.get(HOST_ONLY, ()))
+
+
 def run_fields(*, updates_per_chunk: int, eval_every_chunks: int,
                checkpoint_every_chunks: int, run_dir: str):
     """The base dataclass of a stage's config: the fields of its run's bookkeeping (the
-    driver's host loop reads them; training/driver.py), with the stage's defaults."""
-    spec = (  # name, type, default
-        ("updates_per_chunk", int, updates_per_chunk),   # jitted updates between the
-                                                         # host's logs and checks
-        ("eval_every_chunks", int, eval_every_chunks),
-        ("eval_episodes_per_room_type", int, 50),   # val episodes during training (test: 250)
-        ("checkpoint_every_chunks", int, checkpoint_every_chunks),
-        ("keep_checkpoints", int, 2),
-        ("seed", int, 0),
-        ("run_dir", str, run_dir),
+    driver's host loop reads them; training/driver.py), with the stage's defaults. All
+    but updates_per_chunk (a chunk's length is compiled) are host-only in every stage."""
+    spec = (  # name, type, default, host only
+        ("updates_per_chunk", int, updates_per_chunk, False),   # jitted updates between
+                                                                # the host's logs, checks
+        ("eval_every_chunks", int, eval_every_chunks, True),
+        ("eval_episodes_per_room_type", int, 50, True),   # val episodes during training
+                                                          # (test: 250)
+        ("checkpoint_every_chunks", int, checkpoint_every_chunks, True),
+        ("keep_checkpoints", int, 2, True),
+        ("seed", int, 0, True),            # a traced input (the PRNG key), never static
+        ("run_dir", str, run_dir, True),
     )
     cls = dataclasses.make_dataclass(
-        "RunFields", [(name, kind, dataclasses.field(default=value))
-                      for name, kind, value in spec], frozen=True)
+        "RunFields", [(name, kind, host_only(value) if host else dataclasses.field(
+            default=value)) for name, kind, value, host in spec], frozen=True)
     cls.__module__ = __name__
     return cls
 

@@ -35,6 +35,7 @@ from orgnav_jax.models import build_model
 from orgnav_jax.training import savn, scale
 from orgnav_jax.training.checkpoints import RunCheckpoints
 from orgnav_jax.training.config import TrainConfig, load_config
+from orgnav_jax.training.config_fields import host_only_fields
 from orgnav_jax.training.driver import Stage, StopRule, run_population
 from orgnav_jax.training.pretrain import load_pretrained
 from orgnav_jax.training.run_dir import seed_run_dir
@@ -43,17 +44,8 @@ from orgnav_jax.training.update import init_runner, make_optimizer, make_train_c
 
 
 # fields the jitted chunk does not read (compile_cache.py: runs differing only in these
-# share one compiled program). The scene fields only say where the rooms come from: the
-# rooms are the chunk's input (their shapes key jit's own cache) and their feature widths
-# are in the model, so two copies of a set, or two sets of one shape, share the program.
-HOST_ONLY_FIELDS = ("run_dir", "total_env_steps", "eval_every_chunks",
-                    "eval_episodes_per_room_type", "checkpoint_every_chunks",
-                    "keep_checkpoints", "seed", "devices",   # devices: the mesh is a key
-                    "scene_preset", "scenes_dir", "scene_seed",
-                    # VTNet's pre-training stage (training/pretrain.py)
-                    "pretrain_samples", "pretrain_batch", "pretrain_lr",
-                    "pretrain_weight_decay", "pretrain_lr_drop", "pretrain_clip",
-                    "pretrain_val_samples")
+# share one compiled program): marked host_only next to each field (training/config.py)
+HOST_ONLY_FIELDS = host_only_fields(TrainConfig, "nav")
 PRETRAINED = "(a pre-training run)"   # compute_config's `pretrained`: whether, not where
 
 

@@ -49,6 +49,7 @@ from orgnav_jax.models.vtnet import VTNetPretrain, is_visual, pretrain_init
 from orgnav_jax.training.checkpoints import RunCheckpoints
 from orgnav_jax.training.config import (  # noqa: F401  (PretrainConfig re-exported)
     PretrainConfig, TrainConfig, load_pretrain_config)
+from orgnav_jax.training.config_fields import host_only_fields
 from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
 from orgnav_jax.training.run_dir import open_run_dir
@@ -107,11 +108,9 @@ def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
                                    weight_decay=cfg.pretrain_weight_decay))
 
 
-# fields pre-training's programs do not read (compile_cache.py)
-HOST_ONLY_FIELDS = ("run_dir", "total_env_steps", "eval_every_chunks",
-                    "eval_episodes_per_room_type", "checkpoint_every_chunks",
-                    "keep_checkpoints", "seed", "devices", "scene_preset", "scenes_dir",
-                    "scene_seed", "pretrain_samples", "pretrain_val_samples", "pretrained")
+# fields pre-training's programs do not read (compile_cache.py): marked host_only next to
+# each field (training/config.py)
+HOST_ONLY_FIELDS = host_only_fields(TrainConfig, "pretrain")
 
 
 @compiled_once
