@@ -25,6 +25,7 @@ from orgnav_jax.api import is_results_json  # noqa: F401  (the results-file test
 from orgnav_jax.constants import DEFAULT_SCENE_PRESET, EPISODES_PER_ROOM_TYPE
 from orgnav_jax.errors import UserError, run_cli
 from orgnav_jax.safe_write import check_output_file
+from orgnav_jax.tpn.config import TEST_TIME_FIELDS, add_tpn_arguments, tpn_overrides_from_args
 
 POLICIES = ("expert", "random")
 
@@ -86,7 +87,6 @@ def parser() -> argparse.ArgumentParser:
                     help="a SAVN run's test-time actions (default: its config's savn_act)")
     ap.add_argument("--per-target", action="store_true",
                     help="also print success and SPL per target category")
-    from orgnav_jax.tpn.config import TEST_TIME_FIELDS, add_tpn_arguments
     add_tpn_arguments(ap, TEST_TIME_FIELDS)
     return ap
 
@@ -98,7 +98,6 @@ def main(argv: list[str] | None = None) -> dict:
         if not args.out.strip():
             raise UserError("--out is empty: expected a path")
         check_output_file(args.out, is_results_json, api.RESULTS, inputs=(args.episodes,))
-    from orgnav_jax.tpn.config import tpn_overrides_from_args
     loaded = api.load_policy(policy=args.policy, run_dir=args.checkpoint, tpn_dir=args.tpn,
                              release_checkpoint=args.release_checkpoint,
                              release_kind=args.release_kind, savn_act=args.savn_act,

@@ -45,12 +45,18 @@ import json
 import sys
 from pathlib import Path
 
+import jax
+
 from orgnav_jax import api, evaluate
 from orgnav_jax.errors import UserError, run_cli
+from orgnav_jax.tpn.config import (
+    add_tpn_arguments, check_tpn_base, get_tpn_config, load_tpn_config,
+    tpn_overrides_from_args)
 from orgnav_jax.training.config import (
-    BUDGETS, TRAIN_PRESETS, add_config_arguments, default_run_dir, get_config, load_config,
-    overrides_from_args)
-from orgnav_jax.training.run_dir import is_run_dir
+    BUDGETS, TRAIN_PRESETS, PretrainConfig, add_config_arguments, default_run_dir, get_config,
+    load_config, load_pretrain_config, overrides_from_args)
+from orgnav_jax.training.run_dir import is_run_dir, seed_run_dir
+from orgnav_jax.training.scale import DISTRIBUTED_TIMEOUT_S, init_distributed, is_primary
 
 
 def _parser(prog: str, stage: str) -> argparse.ArgumentParser:
@@ -123,7 +129,6 @@ def parser() -> argparse.ArgumentParser:
 
 
 def tpn_parser() -> argparse.ArgumentParser:
-    from orgnav_jax.tpn.config import add_tpn_arguments
     ap = _parser("python -m orgnav_jax.train --stage tpn", "tpn")
     add_tpn_arguments(ap)
     return ap
@@ -131,7 +136,6 @@ def tpn_parser() -> argparse.ArgumentParser:
 
 def main_tpn(argv: list[str]) -> dict:
     """Stage 2: train the TPN on a finished run, then evaluate with test-time updates."""
-    from orgnav_jax.tpn.config import get_tpn_config, load_tpn_config, tpn_overrides_from_args
     args = tpn_parser().parse_args(argv)
     if start_processes(args) > 1:
         raise UserError("--stage tpn runs in one process: start it without --coordinator / "
@@ -152,7 +156,6 @@ def main_tpn(argv: list[str]) -> dict:
         if not fields.get("base_dir"):
             raise UserError("--stage tpn needs --base RUN_DIR (a finished training run)")
         base = load_config(fields["base_dir"])   # a training run (clear errors otherwise)
-        from orgnav_jax.training.runs import check_tpn_base
         check_tpn_base(base, fields["base_dir"])    # not SAVN: one line, nothing written
         cfg = get_tpn_config(**fields)
     return run_tpn_stage(cfg, args.resume, args)
@@ -161,7 +164,6 @@ def main_tpn(argv: list[str]) -> dict:
 def start_processes(args) -> int:
     """jax.distributed.initialize when asked (before anything touches a device) -> the
     number of processes."""
-    from orgnav_jax.training.scale import DISTRIBUTED_TIMEOUT_S, init_distributed
     timeout = args.distributed_timeout
     if timeout is not None and timeout < 1:
         raise UserError(f"--distributed-timeout {timeout}: expected an integer >= 1 (seconds)")
@@ -171,14 +173,12 @@ def start_processes(args) -> int:
                      auto=args.distributed,
                      timeout_s=DISTRIBUTED_TIMEOUT_S if timeout is None else timeout)
     if args.coordinator is not None or args.distributed:
-        import jax
         return jax.process_count()
     return 1
 
 
 def primary() -> bool:
     """Whether this process prints and writes results (process 0; see training/scale.py)."""
-    from orgnav_jax.training.scale import is_primary
     return is_primary()
 
 
@@ -194,7 +194,6 @@ def announce(cfg, header: str) -> None:
 def finish(summary: dict, run_dir: str, args) -> dict:
     """Print the summary; unless --no-test, evaluate the run on the test split (in one
     process: a multi-process run skips it, see docs/scale_out.md)."""
-    import jax
     summary.pop("runner")
     if not primary():
         return summary
@@ -271,7 +270,6 @@ def check_resume_preset(preset: str, cfg) -> None:
 def pipeline_tpn_fields(args) -> dict:
     """The TPN fields of a both-stages preset (--tpn-lr, --tpn-episodes or --budget),
     validated before stage 1 trains: ValueError naming the field otherwise."""
-    from orgnav_jax.tpn.config import get_tpn_config
     fields = {} if args.tpn_lr is None else {"tpn_lr": args.tpn_lr}
     episodes = args.tpn_episodes if args.tpn_episodes is not None else (
         BUDGETS[args.budget].tpn_episodes if args.budget else None)
@@ -322,7 +320,6 @@ def main(argv: list[str] | None = None) -> dict:
         summaries = [finish(api.train(cfg, resume=args.resume, progress=not args.quiet),
                             cfg.run_dir, args)]
     if pipeline:
-        from orgnav_jax.tpn.config import get_tpn_config
         for summary in summaries:
             tpn_cfg = get_tpn_config(base_dir=summary["run_dir"], **tpn_fields)
             summary["tpn"] = run_tpn_stage(
@@ -334,8 +331,6 @@ def pretrain_configs(args, nav=None) -> list:
     """The PretrainConfigs --stage pretrain (or a pre-training pipeline, of the training
     config `nav`) runs: one, or one per --seeds seed (RUN_DIR-sS); UserError for options
     that do not go together."""
-    from orgnav_jax.training.loop import seed_run_dir
-    from orgnav_jax.training.pretrain import PretrainConfig, load_pretrain_config
     fields = overrides_from_args(args)
     seeds = args.seeds
     if seeds is not None and "seed" in fields:
@@ -398,7 +393,6 @@ def main_pretrain(args) -> dict:
 def main_pretrain_pipeline(args) -> dict:
     """--preset vtnet: the pre-training (RUN_DIR-pretrain), then the training run from it
     (each tested unless --no-test). A --resume continues whichever stage was running."""
-    from orgnav_jax.training.loop import seed_run_dir
     if start_processes(args) > 1:
         raise UserError(f"--preset {args.preset} pre-trains first, in one process: run "
                         "--stage pretrain, then --pretrained PRE_RUN_DIR on several")

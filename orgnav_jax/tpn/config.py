@@ -193,6 +193,15 @@ STAGE2_OPTIM: dict[str, dict] = {
 V7_DEFAULTS = {"placement": "state", "optim": "ours"}
 
 
+def check_tpn_base(nav_cfg, base_dir) -> None:
+    """A TPN's base must be a navigation run without SAVN: SAVN adapts by its own inner
+    steps and its parameters hold the learned loss beside the network (docs/savn.md)."""
+    if nav_cfg.savn:
+        raise ValueError(f"--base {base_dir}: a SAVN run cannot be a TPN base (SAVN adapts "
+                         "by its own inner steps; docs/savn.md): choose a run trained "
+                         "without savn")
+
+
 def get_tpn_config(**fields) -> TPNConfig:
     """Defaults with fields replaced; run_dir defaults to <base_dir>/tpn; the optimiser
     (optim, "release" by default) fills its STAGE2_OPTIM fields that are not given."""

@@ -34,15 +34,17 @@ from orgnav_jax.compile_cache import compiled_once, computation_of
 from orgnav_jax.constants import DONE
 from orgnav_jax.errors import choose
 from orgnav_jax.models import model_inputs
-from orgnav_jax.tpn.config import TPNConfig, load_tpn_config
+from orgnav_jax.tpn.config import TPNConfig, check_tpn_base, load_tpn_config
 from orgnav_jax.tpn.deadlock import detect, detector_init
 from orgnav_jax.tpn.test_time import build_tpn, init_tpn_params
-from orgnav_jax.training.config import load_config
+from orgnav_jax.training.config import TrainConfig, load_config
 from orgnav_jax.training.config_fields import host_only_fields
 from orgnav_jax.training.driver import Stage, run_stage
 from orgnav_jax.training.losses import imitation_loss
+from orgnav_jax.training.memory import check_tpn_memory
 from orgnav_jax.training.run_dir import open_run_dir
-from orgnav_jax.training.runs import device_splits, load_run_model, preflight_tpn
+from orgnav_jax.training.runs import (
+    check_training_scenes, device_splits, load_run_model, scenes_for)
 from orgnav_jax.tree import where_rows
 
 
@@ -158,6 +160,18 @@ def make_tpn_chunk(cfg: TPNConfig, model, tpn, optimizer):
 # that differ only in them share one compiled chunk, val collection and val loss
 # (compile_cache.py).
 HOST_ONLY_FIELDS = host_only_fields(TPNConfig, "tpn")
+
+
+def preflight_tpn(cfg: TPNConfig, nav_cfg: TrainConfig):
+    """Every check before stage 2 writes or compiles anything -> the base run's SceneSet:
+    the TPN config's own validation, the base (not SAVN), its scenes' train and val rooms
+    and one chunk's memory estimate (training.memory.check_tpn_memory)."""
+    cfg.validate()
+    check_tpn_base(nav_cfg, cfg.base_dir)
+    scenes = scenes_for(nav_cfg)
+    check_training_scenes(scenes, nav_cfg)
+    check_tpn_memory(cfg, nav_cfg, scenes)
+    return scenes
 
 
 @compiled_once

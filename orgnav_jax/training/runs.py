@@ -27,7 +27,7 @@ from orgnav_jax.training import savn, scale
 from orgnav_jax.training.checkpoints import RunCheckpoints
 from orgnav_jax.training.config import (
     SAVN_ACTS, TrainConfig, load_config, load_pretrain_config)
-from orgnav_jax.training.memory import check_memory, check_tpn_memory
+from orgnav_jax.training.memory import check_memory
 from orgnav_jax.training.run_dir import is_run_dir
 from orgnav_jax.training.update import init_runner, make_optimizer
 
@@ -219,25 +219,6 @@ def keep_word_vectors(cfg: TrainConfig, resume: bool = False) -> TrainConfig:
             return cfg
         cfg = dataclasses.replace(cfg, word_vectors_sha256=kept)
     return dataclasses.replace(cfg, word_vectors_sha256=check_word_vectors(cfg, whose))
-
-
-def check_tpn_base(nav_cfg: TrainConfig, base_dir) -> None:
-    """A TPN's base must be a navigation run without SAVN: SAVN adapts by its own inner
-    steps and its parameters hold the learned loss beside the network (docs/savn.md)."""
-    if nav_cfg.savn:
-        raise ValueError(f"--base {base_dir}: a SAVN run cannot be a TPN base (SAVN adapts "
-                         "by its own inner steps; docs/savn.md): choose a run trained "
-                         "without savn")
-
-
-def preflight_tpn(cfg, nav_cfg: TrainConfig):
-    """preflight for stage 2: the TPN config on the base run's config and scenes."""
-    cfg.validate()
-    check_tpn_base(nav_cfg, cfg.base_dir)
-    scenes = scenes_for(nav_cfg)
-    check_training_scenes(scenes, nav_cfg)
-    check_tpn_memory(cfg, nav_cfg, scenes)
-    return scenes
 
 
 def _saved_version(run_dir) -> int:
