@@ -18,15 +18,24 @@ import argparse
 import dataclasses
 import json
 import time
+import warnings
 from pathlib import Path
 
+import numpy as np
+
 from orgnav_jax.constants import DEFAULT_SCENE_PRESET, SPLITS
+from orgnav_jax.episodes import sample_episodes
 from orgnav_jax.safe_write import check_output_dir
+from orgnav_jax.scenes.offline.episodes import write_offline_episodes
+from orgnav_jax.scenes.offline.exporter import check_export_dir, export_offline
+from orgnav_jax.scenes.offline.importer import format_report, import_to
 from orgnav_jax.scenes.offline.validate import OfflineFormatError
 from orgnav_jax.scenes.sceneset.fields import FORMAT_VERSION
+from orgnav_jax.scenes.sceneset.quantize import with_features
 from orgnav_jax.scenes.sceneset.storage import disk_size, is_scene_set, load, save
 from orgnav_jax.scenes.summary import format_summary, summarize
 from orgnav_jax.scenes.synthetic.builder import build
+from orgnav_jax.scenes.synthetic.cache import cache_path, load_or_build
 from orgnav_jax.scenes.synthetic.layout import ROOM_SIZE_PROFILES, generate_room, render_ascii
 from orgnav_jax.scenes.synthetic.perception import parse_knobs
 from orgnav_jax.scenes.synthetic.presets import SCENE_PRESETS, get_preset
@@ -114,7 +123,6 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "info":
         path = args.path
         if not Path(path).exists() and path in SCENE_PRESETS:
-            from orgnav_jax.scenes.synthetic.cache import cache_path, load_or_build
             load_or_build(path, args.seed)           # built on first use, as training does
             path = str(cache_path(path, args.seed))
             print(f"preset {args.path}, seed {args.seed}: {path}")
@@ -135,9 +143,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _convert(args) -> dict:
-    import warnings
-
-    from orgnav_jax.scenes.sceneset.quantize import with_features
     check_output_dir(args.out, is_scene_set, "a SceneSet")
     with warnings.catch_warnings():      # the old-format warning names this very command
         warnings.simplefilter("ignore")
@@ -221,7 +226,6 @@ def _rows(args):
 def _import(args) -> int:
     if args.only_listed and not args.splits:
         raise OfflineFormatError("--only-listed needs --splits FILE.json")
-    from orgnav_jax.scenes.offline.importer import format_report, import_to
     scenes, report = import_to(
         args.offline_dir, args.out, scenes=args.scenes, detection_file=args.detection_file,
         detection_rows=_rows(args), unknown_types="error" if args.strict_types else "ignore",
@@ -236,11 +240,6 @@ def _import(args) -> int:
 
 
 def _export(args) -> int:
-    import numpy as np
-
-    from orgnav_jax.episodes import sample_episodes
-    from orgnav_jax.scenes.offline.episodes import write_offline_episodes
-    from orgnav_jax.scenes.offline.exporter import check_export_dir, export_offline
     if args.episodes_per_type < 0:
         raise OfflineFormatError(f"--episodes-per-type {args.episodes_per_type}: expected an "
                                  "integer >= 0 (0: no episode files)")
