@@ -13,6 +13,12 @@ Every function returns its results and raises on bad input (UserError, ValueErro
 OSError, with messages naming the file or field); none prints results or exits. The
 CLIs (`python -m orgnav_jax.train`, `python -m orgnav_jax.evaluate`) turn the errors
 into one-line messages with exit code 2 (errors.run_cli).
+
+Imports: the jax-based layers (evaluation, the trainers, the models, the scene sets) are
+imported inside the functions that use them, marked "jax-based: on first use", so that
+`import orgnav_jax.api` stays light (no jax: a fraction of a second, not seconds) for
+what needs none of them: the command lines' --help and argument errors, and the tables
+and checks that read run directories only.
 """
 
 from __future__ import annotations
@@ -22,12 +28,14 @@ import json
 import sys
 from pathlib import Path
 
-from orgnav_jax.constants import DEFAULT_SCENE_PRESET, EPISODES_PER_ROOM_TYPE
+from orgnav_jax.constants import (
+    DEFAULT_SCENE_PRESET, EPISODES_PER_ROOM_TYPE, IMAGE_SIZE, ROOM_TYPES)
 from orgnav_jax.errors import UserError
 from orgnav_jax.safe_write import check_output_file, json_text, write_text_atomic
 from orgnav_jax.tables.convergence import check_stop_rule, stop_when_converged
-from orgnav_jax.training.config import TrainConfig, load_config
-from orgnav_jax.training.run_dir import is_run_dir
+from orgnav_jax.tpn.config import TEST_TIME_FIELDS, get_tpn_config
+from orgnav_jax.training.config import PretrainConfig, TrainConfig, load_config
+from orgnav_jax.training.run_dir import is_run_dir, seed_run_dir
 
 RESULTS = "an evaluation results JSON of orgnav_jax.evaluate"
 # host memory one evaluated episode takes at its peak (sampling ~90 B, measured with
@@ -62,35 +70,33 @@ def load_policy(policy: str | None = None, run_dir: str | None = None,
     MetaMemoryGraphModel with the test-time updates of its TPN head, test_time
     overriding the release's settings, tpn_lr 0 for none). savn_act
     ("greedy" | "sample") overrides a SAVN run's test-time actions."""
-    from orgnav_jax import evaluation
+    from orgnav_jax import evaluation  # jax-based: on first use
+    from orgnav_jax.models import release  # jax-based: on first use
+    from orgnav_jax.tpn.test_time import (  # jax-based: on first use
+        default_batch_size, load_tpn_policy, tpn_name, tpn_policy)
+    # jax-based: on first use
+    from orgnav_jax.training.runs import load_run_policy, model_policy
     if sum(x is not None for x in (policy, run_dir, tpn_dir, release_checkpoint)) > 1:
         raise UserError("give one of a policy name, a run directory, a TPN run directory or "
                         "a release checkpoint")
     release_tpn = release_checkpoint is not None and release_kind == "MetaMemoryGraphModel"
     if test_time and tpn_dir is None and not release_tpn:
-        from orgnav_jax.tpn.config import TEST_TIME_FIELDS
         options = ", ".join("--" + f.replace("_", "-") for f in TEST_TIME_FIELDS)
         raise UserError(f"test-time TPN options ({options}) need --tpn TPN_RUN_DIR or "
                         "--release-kind MetaMemoryGraphModel")
     if savn_act is not None and run_dir is None:
         raise UserError("--savn-act needs --checkpoint RUN_DIR of a SAVN or D-SAVN run")
     if tpn_dir is not None:
-        from orgnav_jax.tpn.test_time import default_batch_size, load_tpn_policy
         pol, params, run_cfg, tpn_cfg = load_tpn_policy(tpn_dir, **test_time)
         return LoadedPolicy(pol, params, f"{Path(tpn_cfg.base_dir).name}-{pol.name}",
                             run_cfg.scene_preset, run_cfg.scenes_dir, run_cfg.scene_seed,
                             default_batch_size(params["base"], tpn_cfg), from_run=True)
     if run_dir is not None:
-        from orgnav_jax.training.runs import load_run_policy
         pol, params, run_cfg = load_run_policy(run_dir, savn_act=savn_act)
         return LoadedPolicy(pol, params, Path(run_dir).name, run_cfg.scene_preset,
                             run_cfg.scenes_dir, run_cfg.scene_seed, from_run=True)
     if release_checkpoint is not None:
-        from orgnav_jax.constants import IMAGE_SIZE
-        from orgnav_jax.models import release
-        from orgnav_jax.training.runs import model_policy
         if release_tpn:            # the test-time settings, checked before the file is read
-            from orgnav_jax.tpn.config import get_tpn_config
             settings = get_tpn_config(**test_time).test_time()
         net = release.load(release_kind, release.read_checkpoint(release_checkpoint))
         stem = Path(release_checkpoint).stem
@@ -100,7 +106,6 @@ def load_policy(policy: str | None = None, run_dir: str | None = None,
                                 name)
         # MetaMemoryGraphModel: its navigation network with the test-time updates of its
         # own TPN head (the release's procedure: tpn/test_time.py; tpn_lr 0: none)
-        from orgnav_jax.tpn.test_time import default_batch_size, tpn_name, tpn_policy
         pol = tpn_policy(net.model, net.tpn, settings, tpn_name(release_kind, settings),
                          release.RELEASE_DROPOUT, box_scale=float(IMAGE_SIZE))
         params = {"base": net.params, "tpn": net.tpn_params}
@@ -149,19 +154,18 @@ def evaluate(loaded: LoadedPolicy, split: str = "test", *, scenes_dir: str | Non
     scene_preset: evaluate on this scene preset instead of the loaded policy's (a run on
     scenes other than its own, as scenes_dir does; its feature widths must be the run's);
     not with scenes_dir."""
-    from tqdm import tqdm
-
-    from orgnav_jax import env, evaluation
-    from orgnav_jax.episodes import is_episode_file, load_episodes, sample_episodes, \
-        save_episodes
-    from orgnav_jax.scenes.synthetic.cache import device_split
+    from tqdm import tqdm  # the progress bar: on first use, as the jax-based below
+    from orgnav_jax import env, evaluation  # jax-based: on first use
+    from orgnav_jax.episodes import (  # jax-based: on first use
+        is_episode_file, load_episodes, sample_episodes, save_episodes)
+    from orgnav_jax.scenes import device_split  # jax-based: on first use
+    # jax-based: on first use
+    from orgnav_jax.training.memory import available_memory, human
     if split not in ("train", "val", "test"):
         raise UserError(f"split {split!r}: expected train, val or test")
     if per_room_type < 1:
         raise UserError(f"--episodes-per-room-type {per_room_type}: expected an integer >= 1")
     if not episodes:
-        from orgnav_jax.constants import ROOM_TYPES
-        from orgnav_jax.training.memory import available_memory, human
         need = per_room_type * len(ROOM_TYPES) * EPISODE_BYTES
         have, source = available_memory()
         if have is not None and need > have:
@@ -249,7 +253,6 @@ def load_run(run_dir: str | Path, savn_act: str | None = None, **test_time) -> L
 def evaluate_run(run_dir: str | Path, split: str = "test", **kw) -> dict:
     """evaluate() of a run directory's policy (load_run; kw may hold test-time fields
     for a TPN run)."""
-    from orgnav_jax.tpn.config import TEST_TIME_FIELDS
     test_time = {k: kw.pop(k) for k in list(kw) if k in TEST_TIME_FIELDS}
     return evaluate(load_run(run_dir, savn_act=kw.pop("savn_act", None), **test_time),
                     split, **kw)
@@ -258,8 +261,8 @@ def evaluate_run(run_dir: str | Path, split: str = "test", **kw) -> dict:
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
     """Stage 1: train (or resume) the navigation run cfg.run_dir -> summary (best val,
     env steps, compile and wall time; the final runner under 'runner')."""
-    from orgnav_jax.training.loop import train as train_navigation
-    return train_navigation(cfg, resume=resume, progress=progress)
+    from orgnav_jax.training import loop  # jax-based: on first use
+    return loop.train(cfg, resume=resume, progress=progress)
 
 
 def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = True,
@@ -269,12 +272,12 @@ def train_seeds(cfg: TrainConfig, seeds, resume: bool = False, progress: bool = 
     until_converged: stop at the first val evaluation where the convergence rule holds
     (tables/convergence.py; cfg.total_env_steps is then the cap; each summary's
     'stopped' says why it stopped early, None at the cap)."""
-    from orgnav_jax.training.loop import train_seeds as train_population
+    from orgnav_jax.training import loop  # jax-based: on first use
     stop = None
     if until_converged:
         check_until_converged(cfg, seeds)
         stop = stop_when_converged()
-    return train_population(cfg, seeds, resume=resume, progress=progress, stop=stop)
+    return loop.train_seeds(cfg, seeds, resume=resume, progress=progress, stop=stop)
 
 
 def check_until_converged(cfg: TrainConfig, seeds) -> None:
@@ -293,16 +296,15 @@ def pretrain(cfg, resume: bool = False, progress: bool = True) -> dict:
     """VTNet's pre-training: train (or resume) the visual transformer of the
     PretrainConfig cfg in cfg.run_dir -> summary (best val accuracy, samples;
     training/pretrain.py). A training run starts from it with pretrained=cfg.run_dir."""
-    from orgnav_jax.training.pretrain import pretrain as pretrain_vtnet
-    return pretrain_vtnet(cfg, resume=resume, progress=progress)
+    from orgnav_jax.training import pretrain as vtnet_pretraining  # jax-based: on first use
+    return vtnet_pretraining.pretrain(cfg, resume=resume, progress=progress)
 
 
 def pretrain_for(cfg: TrainConfig, pre_dir: str | Path, progress: bool = True) -> bool:
     """The pre-training a VTNet training config `cfg` starts from, in pre_dir (its
     PretrainConfig, seed cfg.seed): trained, resumed when partial, reused without work
     when finished -> whether any pre-training ran now."""
-    from orgnav_jax.training.checkpoints import RunCheckpoints
-    from orgnav_jax.training.pretrain import PretrainConfig
+    from orgnav_jax.training.checkpoints import RunCheckpoints  # jax-based: on first use
     pcfg = PretrainConfig.of(cfg, run_dir=str(pre_dir), pretrained=None)
     resumed = is_run_dir(pre_dir)
     if resumed and (RunCheckpoints(pre_dir).latest_step() or 0) >= pcfg.total_samples:
@@ -313,8 +315,8 @@ def pretrain_for(cfg: TrainConfig, pre_dir: str | Path, progress: bool = True) -
 
 def train_tpn(cfg, resume: bool = False, progress: bool = True) -> dict:
     """Stage 2: train (or resume) the TPN of cfg.run_dir on its frozen base -> summary."""
-    from orgnav_jax.tpn.stage2 import train_tpn as train_stage2
-    return train_stage2(cfg, resume=resume, progress=progress)
+    from orgnav_jax.tpn import stage2  # jax-based: on first use
+    return stage2.train_tpn(cfg, resume=resume, progress=progress)
 
 
 def test_run(run_dir: str | Path, progress: bool = True) -> dict:
@@ -328,7 +330,6 @@ def train_both(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     """Both stages: the navigation run, then its TPN (in RUN_DIR/tpn; tpn_fields are
     TPNConfig fields such as tpn_lr, total_episodes), each tested on the test split when
     `test` -> {"nav": summary, "tpn": summary} (summaries hold "test" results)."""
-    from orgnav_jax.tpn.config import get_tpn_config
     nav = train(cfg, resume=resume, progress=progress)
     if test:
         nav["test"] = test_run(cfg.run_dir, progress)["overall"]
@@ -347,6 +348,5 @@ def resume_config(run_dir: str | Path, seeds=None, **changes) -> TrainConfig:
     of the first seed's run."""
     saved = run_dir
     if seeds:
-        from orgnav_jax.training.loop import seed_run_dir
         saved = seed_run_dir(str(run_dir), seeds[0])
     return dataclasses.replace(load_config(saved), run_dir=str(run_dir), **changes)
