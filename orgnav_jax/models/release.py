@@ -367,7 +367,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, np.ndarray]:
             raise ReleaseError(f"{path}: not a readable .npz ({type(e).__name__}: {first}; "
                                "a truncated file, an interrupted download?)") from None
     try:
-        import torch
+        import torch  # optional (the release extra) and heavy: only a .dat checkpoint needs it
     except ImportError:
         raise ReleaseError(f"{path}: reading a torch checkpoint needs torch: pip install "
                            "'orgnav_jax[release]' (or save the state dict as .npz)") from None

@@ -1,6 +1,7 @@
 """ORG's learned adjacency (or D-SP's prior graph) as a category heat map, and whether
 it ranks the generator's co-occurrence pairs (scenes/synthetic/catalog.py ANCHORS) high
-(the statistic, anchor_pair_report, is the tables library's: tables/adjacency.py)."""
+(the statistic, anchor_pair_report, is the tables library's: tables/adjacency.py).
+"""
 
 from __future__ import annotations
 
@@ -9,9 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from orgnav_jax.constants import CATEGORIES, CATEGORY_INDEX
-from orgnav_jax.plots.common import save_png
+from orgnav_jax.models.org import cooccurrence_adjacency
+from orgnav_jax.plots.common import pyplot, save_png
 # the statistic is the tables library's; plots re-exports it (plots/__init__.py)
 from orgnav_jax.tables.adjacency import anchor_pair_report, anchor_pairs  # noqa: F401
+from orgnav_jax.training.config import load_config
 
 
 def format_report(rep: dict) -> str:
@@ -41,10 +44,7 @@ def plot_adjacency(A, path, title: str = "ORG adjacency A", mark_pairs: bool = T
     columns: attended category j) and write a PNG to `path`. The colour scale is symmetric
     around 0 and set by the off-diagonal entries (the diagonal may saturate); anchor pairs
     are marked with dots."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     A = np.asarray(A, np.float64)
     C = len(CATEGORIES)
     if A.shape != (C, C):
@@ -90,17 +90,16 @@ def find_adjacency(variables) -> np.ndarray:
 
 def run_adjacency(run_dir: str | Path, best: bool = True) -> tuple[np.ndarray, str]:
     """-> (A, model name) of a run: the learned A of 'org', the prior graph of 'dsp'."""
-    from orgnav_jax.training.config import load_config
+    # the trainer's modules (orbax, optax: seconds) on first use: `import orgnav_jax.plots`
+    # (the curves, the tables' figures) does without them
+    from orgnav_jax.training.runs import load_run_policy, scenes_for
     cfg = load_config(run_dir)
     if cfg.model in ("dsp", "dsp_replace"):
-        from orgnav_jax.models.org import cooccurrence_adjacency
-        from orgnav_jax.training.runs import scenes_for
         present = np.asarray(scenes_for(cfg).split_view("train").present)
         return cooccurrence_adjacency(present), cfg.model
     if cfg.model != "org":
         raise ValueError(f"run {run_dir} trains model {cfg.model!r}, which has no adjacency "
                          "matrix (only 'org' learns one; 'dsp' uses a fixed prior)")
-    from orgnav_jax.training.runs import load_run_policy
     _, params, cfg = load_run_policy(run_dir, best=best)
     return find_adjacency(params), cfg.model
 

@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+
 import numpy as np
 
 from orgnav_jax.plots import adjacency, curves, episodes
 from orgnav_jax.plots.common import default_out
+from orgnav_jax.tpn.config import TEST_TIME_FIELDS, add_tpn_arguments, tpn_overrides_from_args
 
 
 def main(argv=None) -> int:
@@ -31,7 +33,6 @@ def main(argv=None) -> int:
     t.add_argument("run_dir", help="a TPN (stage 2) run directory")
     t.add_argument("--step", type=int, default=None, help="the step whose weights the right "
                    "panel shows (default: the first TPN update, else the last step)")
-    from orgnav_jax.tpn.config import TEST_TIME_FIELDS, add_tpn_arguments
     for sp, png in ((e, "episode-K.png"), (t, "tpn-attention-K.png")):
         sp.add_argument("--episode", type=int, default=0, help="index in the episode set")
         sp.add_argument("--split", choices=("val", "test"), default="test")
@@ -50,7 +51,6 @@ def main(argv=None) -> int:
                    help="shaded band: min-max over seeds (default) or mean +- std")
     args = ap.parse_args(argv)
     if args.cmd in ("episode", "tpn-attention"):
-        from orgnav_jax.tpn.config import tpn_overrides_from_args
         kw = dict(episodes_file=args.episodes, test_time=tpn_overrides_from_args(args))
     if args.cmd == "episode":
         out = default_out(args.run_dir, f"episode-{args.episode}.png", args.out)

@@ -7,14 +7,25 @@ from pathlib import Path
 from orgnav_jax.safe_write import check_output_file, is_own_png, write_png
 
 
+def pyplot(agg: bool = True):
+    """matplotlib.pyplot, switched to the Agg backend (files, no display) unless agg=False
+    (a figure someone else made keeps their backend)."""
+    # matplotlib on first use: heavy, and only drawing needs it (`import orgnav_jax.plots`
+    # serves the tables and the curves' numbers too); Agg before pyplot picks a backend
+    import matplotlib
+    if agg:
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # matplotlib on first use (above)
+    return plt
+
+
 def save_png(fig, out: Path, dpi: int = 120) -> Path:
     """Write a figure (safe_write.write_png: atomic, marked as ours, never over a file we
     did not write) and close it -> out."""
-    import matplotlib.pyplot as plt
     try:
         return write_png(fig, out, dpi)
     finally:
-        plt.close(fig)
+        pyplot(agg=False).close(fig)
 
 
 def default_out(run_dir: str | Path, name: str, out: str | Path | None) -> Path:

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from orgnav_jax.plots.common import save_png
+from orgnav_jax.plots.common import pyplot, save_png
+from orgnav_jax.training.run_dir import read_metrics
 
 
 SEED_SUFFIX = re.compile(r"-s\d+$")
@@ -56,7 +57,6 @@ def read_val_curve(run_dir: str | Path, metrics: Sequence[str]) -> dict[str, np.
     path = run_dir / "metrics.jsonl"
     if not path.is_file():
         raise CurveError(f"{path}: missing (not a training run directory?)")
-    from orgnav_jax.training.run_dir import read_metrics
     if not path.read_text().strip():
         raise CurveError(f"{path}: empty (the run has not logged anything yet)")
     try:
@@ -146,11 +146,7 @@ def plot_curves(run_dirs: Iterable[str | Path] | Mapping[str, Sequence[str | Pat
     if not rows:
         raise CurveError("no run directories given")
     data = load_curves(rows, metrics)
-
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(metrics), figsize=(6 * len(metrics), 4.5), squeeze=False)
     for ax, m in zip(axes[0], metrics):
         scale = 100.0 if m in PERCENT else 1.0

@@ -6,8 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
-from orgnav_jax.constants import CATEGORIES
-from orgnav_jax.plots.common import save_png
+from orgnav_jax import api, env, evaluation
+from orgnav_jax.constants import ACTIONS, CATEGORIES, EPISODES_PER_ROOM_TYPE
+from orgnav_jax.episodes import load_episodes, sample_episodes
+from orgnav_jax.errors import UserError
+from orgnav_jax.plots.common import pyplot, save_png
+from orgnav_jax.scenes import device_split
 
 
 def trace_run_episode(run_dir: str | Path, episode: int = 0, split: str = "test",
@@ -22,10 +26,6 @@ def trace_run_episode(run_dir: str | Path, episode: int = 0, split: str = "test"
     update took, and "tpn_attention" (T, T))}.
     The episode is number `episode` of the split's seeded set (as evaluate samples it),
     or of `episodes_file`."""
-    from orgnav_jax import api, env, evaluation
-    from orgnav_jax.constants import EPISODES_PER_ROOM_TYPE
-    from orgnav_jax.episodes import load_episodes, sample_episodes
-    from orgnav_jax.scenes.synthetic.cache import device_split
     loaded = api.load_run(run_dir, **(test_time or {}))
     scenes = device_split(loaded.scene_preset, loaded.scene_seed, loaded.scenes_dir, split)
     episodes = (load_episodes(episodes_file, scenes) if episodes_file else
@@ -52,9 +52,7 @@ def plot_episode(run_dir: str | Path, episode: int = 0, split: str = "test",
     """Top view of one episode of a run (trace_run_episode): the room's positions, where
     the target is in view, the agent's path from start to end, its deadlock steps and the
     steps where TPN updated the policy -> the PNG path (default RUN_DIR/episode-K.png)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     got = trace_run_episode(run_dir, episode, split, **kw)
     steps, scenes, one, outcome = got["steps"], got["scenes"], got["episode"], got["outcome"]
     n, target = int(one.scene[0]), int(one.target[0])
@@ -92,7 +90,6 @@ def tpn_attention(run_dir: str | Path, episode: int = 0, split: str = "test", **
     (its key r_i, its value r_{i+1} and p_i; only i < t can be read, k of them weigh),
     "updated": (T,) bool, the steps the test-time update took; "deadlock", "action"
     (T,); "name", "scene", "target", "outcome"}, T = the steps the episode took."""
-    from orgnav_jax.errors import UserError
     got = trace_run_episode(run_dir, episode, split, **kw)
     steps = got["steps"]
     if "tpn_attention" not in steps:
@@ -113,10 +110,7 @@ def plot_tpn_attention(run_dir: str | Path, episode: int = 0, split: str = "test
     default the first update, else the last step) over the earlier steps, labelled with
     the action taken there -> (the PNG path, default RUN_DIR/tpn-attention-K.png, and
     the tpn_attention dict)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from orgnav_jax.constants import ACTIONS
+    plt = pyplot()
     att = tpn_attention(run_dir, episode, split, **kw)
     A, updated, T = att["attention"], att["updated"], len(att["updated"])
     if step is None:

@@ -208,6 +208,8 @@ class TrainConfig(run_fields(updates_per_chunk=25, eval_every_chunks=8,
     def validate(self) -> "TrainConfig":
         """Check every field's type and range; ValueError naming the field, its value and
         the expected range (FIELD_RANGES, docs/training.md)."""
+        # the models (jax: seconds) on first use: configs are read where jax is not
+        # (api, the command lines' --help); ENCODERS is the one list of model names
         from orgnav_jax.models import ENCODERS
         check_types(self, "config field")
         if self.model not in ENCODERS:
