@@ -5,6 +5,8 @@ no import cycle between packages. No module is exempt: the command lines sit on 
 from __future__ import annotations
 
 import ast
+import io
+import tokenize
 from pathlib import Path
 
 import pytest
@@ -193,3 +195,143 @@ def test_the_script_checks_see_what_they_look_for(tmp_path):
     lines = f.read_text().splitlines()
     assert [says_why(lines, n) for n in late_imports(f)] == [False, True]
     assert sys_path_lines(f) == [8]
+
+
+# ---- the package's own imports (issue 66): at the top of each module, where a reader
+# sees the import graph; inside a function only where a heavy optional dependency (torch,
+# matplotlib) or a light importer (api, the command lines' --help: no jax) needs it, few,
+# each saying why on its line or the comment line above; no cycle between modules
+
+FUNCTION_IMPORTS_LIMIT = 30     # function-level imports in orgnav_jax/: fewer than this
+
+
+def function_imports(path: Path) -> list[ast.stmt]:
+    """The import statements inside a function (at any depth) of a file."""
+    found = []
+
+    def visit(node, inside: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if inside and isinstance(child, (ast.Import, ast.ImportFrom)):
+                found.append(child)
+            visit(child, inside or isinstance(child, (ast.FunctionDef,
+                                                      ast.AsyncFunctionDef, ast.Lambda)))
+    visit(ast.parse(path.read_text()), False)
+    return found
+
+
+def comment_lines(path: Path) -> tuple[set[int], set[int]]:
+    """(lines holding a comment, lines holding nothing but a comment) of a file."""
+    anywhere, alone = set(), set()
+    for tok in tokenize.generate_tokens(io.StringIO(path.read_text()).readline):
+        if tok.type == tokenize.COMMENT:
+            anywhere.add(tok.start[0])
+            if not tok.line[:tok.start[1]].strip():
+                alone.add(tok.start[0])
+    return anywhere, alone
+
+
+def explained(node: ast.stmt, comments: tuple[set[int], set[int]]) -> bool:
+    """Whether an import has a comment on one of its lines or a comment line above it."""
+    anywhere, alone = comments
+    return bool(anywhere & set(range(node.lineno, node.end_lineno + 1))) or \
+        node.lineno - 1 in alone
+
+
+def test_function_level_imports_are_few_and_each_says_why():
+    found, silent = [], []
+    for rel in modules():
+        path = PACKAGE / rel
+        comments = comment_lines(path)
+        for node in function_imports(path):
+            found.append(f"orgnav_jax/{rel}:{node.lineno}")
+            if not explained(node, comments):
+                silent.append(found[-1])
+    assert not silent, ("function-level imports without a comment saying why (on the "
+                        f"import or the line above): {silent}")
+    assert len(found) < FUNCTION_IMPORTS_LIMIT, (
+        f"{len(found)} function-level imports in orgnav_jax/ (fewer than "
+        f"{FUNCTION_IMPORTS_LIMIT} expected; import at the top): {found}")
+
+
+def module_imports(module: str, path: Path) -> set[str]:
+    """The package's modules that importing `module` (at `path`) imports: its import
+    statements outside functions (class bodies and if/try blocks run on import), each
+    with the packages above the imported module that are not `module`'s own (their
+    __init__ runs first)."""
+    found = set()
+
+    def visit(node) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                continue
+            if isinstance(child, ast.Import):
+                found.update(a.name for a in child.names)
+            elif isinstance(child, ast.ImportFrom) and child.level == 0 and child.module:
+                found.update(f"{child.module}.{a.name}" if is_module(
+                    f"{child.module}.{a.name}") else child.module for a in child.names)
+            visit(child)
+    visit(ast.parse(path.read_text()))
+    out = set()
+    for name in found:
+        parts = name.split(".")
+        if parts[0] != "orgnav_jax":
+            continue
+        while parts and not is_module(".".join(parts)):    # `import a.b.NAME`: a.b
+            parts.pop()
+        out |= {".".join(parts[:i]) for i in range(2, len(parts) + 1)}
+    own = {module.rsplit(".", k)[0] for k in range(module.count("."))}
+    return out - own - {module}
+
+
+def import_cycle(graph: dict[str, set[str]]) -> list[str]:
+    """One cycle of a directed graph as [a, b, ..., a], or [] when it has none."""
+    state: dict[str, int] = {}           # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str]:
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return path[path.index(nxt):] + [nxt]
+            if nxt not in state:
+                cycle = visit(nxt)
+                if cycle:
+                    return cycle
+        state[node] = 2
+        path.pop()
+        return []
+
+    for node in sorted(graph):
+        if node not in state:
+            cycle = visit(node)
+            if cycle:
+                return cycle
+    return []
+
+
+def test_no_import_cycle_between_modules():
+    graph = {module_name(rel): module_imports(module_name(rel), PACKAGE / rel)
+             for rel in modules()}
+    cycle = import_cycle(graph)
+    assert not cycle, f"an import cycle between modules: {' -> '.join(cycle)}"
+
+
+def test_the_package_import_checks_see_what_they_look_for(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("import os\n\n\nclass C:\n    import json\n\n\ndef g():\n"
+                 "    import numpy  # heavy: on first use\n    # why, above\n"
+                 "    from orgnav_jax import api\n    x = 1  # a comment above is no reason\n"
+                 "    import torch\n\n    def h():\n        import jax\n")
+    found = function_imports(f)
+    assert [n.lineno for n in found] == [9, 11, 13, 16]
+    comments = comment_lines(f)
+    assert [explained(n, comments) for n in found] == [True, True, False, False]
+    assert import_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == \
+        ["a", "b", "c", "a"]
+    assert import_cycle({"a": {"b"}, "b": set(), "c": {"a", "b"}}) == []
+    navmodel = PACKAGE / "models" / "navmodel.py"
+    assert {"orgnav_jax.models.vtnet", "orgnav_jax.scenes",
+            "orgnav_jax.scenes.sceneset", "orgnav_jax.scenes.sceneset.features"} <= \
+        module_imports("orgnav_jax.models.navmodel", navmodel)
+    assert "orgnav_jax.models" not in module_imports("orgnav_jax.models.navmodel", navmodel)

@@ -321,8 +321,10 @@ class MetricsLog:
         self.path, self.step_name = Path(run_dir) / METRICS_FILE, step_name
         if resume_from is not None:
             self._drop_after(resume_from)
-        try:    # tensorboardX on first use (~0.7 s): run directories are read where no
-            from tensorboardX import SummaryWriter   # run is logged (api, the tables)
+        try:
+            # tensorboardX on first use (~0.7 s): run directories are read where no run
+            # is logged (api, the tables, the command lines' --help)
+            from tensorboardX import SummaryWriter
             purge = None if resume_from is None else resume_from + 1
             self.tb = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=purge)
         except ImportError:  # logs stay readable as JSONL
