@@ -20,141 +20,14 @@ import sys
 from pathlib import Path
 
 from orgnav_jax.errors import run_cli
-from orgnav_jax.plots.curves import plot_curves, row_of
-from orgnav_jax.safe_write import write_text_atomic
-from orgnav_jax.tables import convergence as cv
-from orgnav_jax.training.config import load_config
+from orgnav_jax.plots.curves import plot_curves
+from orgnav_jax.tables.convergence_page import campaign_rows, report, rows_of, verdict_lines
+from orgnav_jax.tables.pages import regenerate
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "experiments" / "results" / "convergence"
 FIGURE = ROOT / "docs" / "figures" / "convergence.png"
 TABLE_5M = ROOT / "experiments" / "results" / "table_calibrated"
-TABLE_5M_ROWS = ("baseline", "org", "il", "org_il", "we", "dsp", "dsavn", "savn")
-SPANS_M = (0, 1, 2, 3, 4, 5, 6, 8, 10, 12, 14, 16, 18, 20, 25, 30, 40, 50, 60)
-
-
-def rows_of(run_dirs) -> dict[str, list[Path]]:
-    """Run directories -> {row: [its seeds' directories]}, seeds in name order: a row is
-    the runs of one directory whose names differ only in -s<seed> (named by that name,
-    or by its path where the runs come from several directories)."""
-    rows: dict[str, list[Path]] = {}
-    for d in map(Path, run_dirs):
-        rows.setdefault(str(d.parent / row_of(d)), []).append(d)
-    short = len({Path(k).parent for k in rows}) == 1
-    return {(Path(k).name if short else k): sorted(v) for k, v in rows.items()}
-
-
-def verdict_lines(rows: dict[str, list[Path]]) -> list[str]:
-    """One line per row: the rule at its last evaluation and where it first held."""
-    out = []
-    for row, dirs in rows.items():
-        curve = cv.seed_mean_curve([cv.read_val_curve(d) for d in dirs])
-        why = cv.applicable(curve)
-        if why:
-            out.append(f"{row}: not judged ({why})")
-            continue
-        v, first = cv.judge(curve), cv.converged_at(curve)
-        where = (f"first held at {first.env_steps:,} env steps" if first
-                 else "has not held yet")
-        out.append(f"{row}: {'converged' if v.converged else 'not converged'} ({v.why}); "
-                   f"{where}")
-    return out
-
-
-def setting(run_dir: Path) -> str:
-    """A run's training setting in a few words (from its config.json)."""
-    c = load_config(run_dir)
-    return (f"{c.model}, IL {c.il}, {c.num_envs} envs x {c.rollout_len} steps, lr {c.lr:g}")
-
-
-def campaign_table(rows: dict[str, list[Path]]) -> list[str]:
-    lines = ["| row | setting | seeds | evaluations | to env step | last quarter | quarter "
-             "before | change | rule | first held at (B) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for row, dirs in rows.items():
-        curve = cv.seed_mean_curve([cv.read_val_curve(d) for d in dirs])
-        seeds = ", ".join(d.name.rpartition("-s")[2] for d in dirs)
-        head = f"| {row} | {setting(dirs[0])} | {seeds} | {len(curve.steps)} | " \
-               f"{int(curve.steps[-1]):,} |"
-        why = cv.applicable(curve)
-        if why:
-            lines.append(f"{head} | | | not judged: {why} | |")
-            continue
-        v, first = cv.judge(curve), cv.converged_at(curve)
-        fmt = lambda x: "-" if x is None else f"{x:.1f}"
-        change = "-" if v.change is None else f"{v.change:+.1f}"
-        rule = "converged" if v.converged else (
-            "too short" if v.change is None else "not converged")
-        lines.append(f"{head} {fmt(v.last_quarter)} | {fmt(v.quarter_before)} | {change} | "
-                     f"{rule} | {f'{first.env_steps:,}' if first else '-'} |")
-    return lines
-
-
-def span_table(rows: dict[str, list[Path]], edges_m) -> list[str]:
-    """Seed-mean val success (points) per span of env steps (millions), spans that some
-    row reached."""
-    curves = {row: cv.seed_mean_curve([cv.read_val_curve(d) for d in dirs])
-              for row, dirs in rows.items()}
-    last = max(int(c.steps[-1]) for c in curves.values())
-    edges = [e for e in edges_m if e * 1_000_000 < last] + [
-        next((e for e in edges_m if e * 1_000_000 >= last), edges_m[-1])]
-    edges = [e * 1_000_000 for e in edges]
-    head = [f"{lo // 1_000_000}-{hi // 1_000_000} M" for lo, hi in zip(edges[:-1], edges[1:])]
-    lines = ["| row | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
-    for row, c in curves.items():
-        cells = ["" if m is None else f"{m:.1f}" for m in cv.span_means(c, edges)]
-        lines.append(f"| {row} | " + " | ".join(cells) + " |")
-    return lines
-
-
-def tenths_table(table_dir: Path, rows: tuple[str, ...]) -> list[str]:
-    """A table's rows by tenth of their budget: each seed's mean val success (points)
-    over the evaluations in each tenth of its run, averaged over the seeds (SAVN's
-    evaluation steps differ by seed), and the gain of the last fifth over the one
-    before."""
-    lines = ["| row | seeds | " + " | ".join(f"{i}" for i in range(1, 11)) +
-             " | last fifth - fifth before |", "|---|---|" + "---|" * 11]
-    for row in rows:
-        dirs = sorted(p for p in (table_dir / "runs").glob(f"{row}-s*") if p.is_dir())
-        if not dirs:
-            continue
-        curves = [cv.read_val_curve(d) for d in dirs]
-        tenths = cv.seed_span_means(curves, 10)
-        fifths = cv.seed_span_means(curves, 5)
-        cells = ["" if m is None else f"{m:.1f}" for m in tenths]
-        lines.append(f"| {row} | {len(dirs)} | " + " | ".join(cells) +
-                     f" | {fifths[-1] - fifths[-2]:+.1f} |")
-    return lines
-
-
-def campaign_runs(out: Path = OUT) -> dict[str, list[Path]]:
-    """The campaign's rows whose runs have logged a val evaluation."""
-    runs = sorted(p for p in (out / "runs").glob("*-s*") if (p / "metrics.jsonl").is_file()
-                  and '"kind": "val"' in (p / "metrics.jsonl").read_text())
-    return rows_of(runs) if runs else {}
-
-
-def report(out: Path = OUT, table_5m: Path = TABLE_5M) -> str:
-    rows = campaign_runs(out)
-    text = ["# Convergence: the budget and the fastest setting, on val", "",
-            "Written by `python experiments/convergence.py report` from the runs' committed "
-            "files (`--check` recomputes it). The rule (docs/results.md, \"When a row has "
-            "converged\"; `orgnav_jax/tables/convergence.py`): seed-mean val success of at "
-            f"least {cv.MIN_SEEDS} seeds in one program, {cv.MIN_VAL_EPISODES:,}-episode "
-            f"val evaluations, at least {cv.MIN_EVALUATIONS} of them; converged when the "
-            f"last quarter of the evaluations is within {cv.TOLERANCE:g} point of the "
-            "quarter before. Runs: calibrated preset, seeds 100-101, val every 204,800 "
-            "env steps (`runs/`).", ""]
-    if rows:
-        text += ["## The rule on each row", "", *campaign_table(rows), "",
-                 "## Val success by span of env steps (seed mean, points)", "",
-                 *span_table(rows, SPANS_M), ""]
-    text += ["## The 5 M calibrated table's rows, by tenth of their budget", "",
-             "Seed-mean val success (points; 200-episode evaluations, seeds 0-4) over each "
-             "tenth of the 5,017,600 env steps, from "
-             f"`{table_5m.relative_to(ROOT).as_posix()}/runs/*/metrics.jsonl`:", "",
-             *tenths_table(table_5m, TABLE_5M_ROWS), ""]
-    return "\n".join(text)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -170,21 +43,12 @@ def main(argv: list[str] | None = None) -> int:
         for line in verdict_lines(rows_of(args.run_dirs)):
             print(line)
         return 0
-    text = report()
-    path = OUT / "report.md"
-    if args.check:
-        if not path.is_file() or path.read_text() != text:
-            print(f"{path}: differs from what the runs' files give; run "
-                  "`python experiments/convergence.py report`", file=sys.stderr)
-            return 1
-        print(f"{path}: recomputed, identical")
-        return 0
-    write_text_atomic(path, text)
-    rows = campaign_runs()
-    if rows:
+    status = regenerate({OUT / "report.md": report(OUT, TABLE_5M, ROOT)}, args.check)
+    rows = campaign_rows(OUT)
+    if not args.check and rows:
         plot_curves(rows, FIGURE, metrics=("success",), quiet=True)
-    print(f"wrote {path}" + (f" and {FIGURE}" if rows else ""))
-    return 0
+        print(f"wrote {OUT / 'report.md'} and {FIGURE}")
+    return status
 
 
 if __name__ == "__main__":

@@ -160,3 +160,33 @@ def test_until_converged_bad_values_are_one_line_errors(args, message, tmp_path,
     err = capsys.readouterr().err.strip()
     assert message in err and "\n" not in err
     assert not any(tmp_path.iterdir())      # nothing written
+
+
+def test_the_campaign_page_judges_each_row_and_check_sees_a_change(tmp_path, capsys):
+    from orgnav_jax.tables.convergence_page import report, verdict_lines, rows_of
+    from orgnav_jax.tables.pages import regenerate
+    from orgnav_jax.training.run_dir import write_config
+    out, table = tmp_path / "convergence", tmp_path / "table"
+    plateau = [min(0.02 * i, 0.5) for i in range(1, 61)]
+    for seed in (100, 101):
+        write_metrics(out / "runs" / f"flat-s{seed}", plateau)
+        write_metrics(out / "runs" / f"rising-s{seed}", np.linspace(0.1, 0.6, 45).tolist())
+        write_config(out / "runs" / f"flat-s{seed}", get_config("tiny"))
+        write_config(out / "runs" / f"rising-s{seed}", get_config("tiny"))
+    for seed in range(2):
+        write_metrics(table / "runs" / f"baseline-s{seed}", np.linspace(0.1, 0.5, 50).tolist(),
+                      episodes=200)
+    text = report(out, table, tmp_path)
+    assert "| flat | baseline, IL none, 64 envs x 16 steps, lr 0.0007 | 100, 101 | 60 | " \
+           "12,288,000 | 50.0 | 50.0 | +0.0 | converged | " in text
+    assert "| rising |" in text and "| not converged | - |" in text
+    assert "| baseline | 2 | " in text            # the table's rows by tenth
+    lines = verdict_lines(rows_of(sorted((out / "runs").iterdir())))
+    assert lines[0].startswith("flat: converged (seed-mean val success 50.0")
+    assert lines[1].startswith("rising: not converged") and "has not held yet" in lines[1]
+    page = {out / "report.md": text}
+    assert regenerate(page, check=False) == 0 and regenerate(page, check=True) == 0
+    write_metrics(out / "runs" / "flat-s102", plateau[:-1] + [0.9])
+    page = {out / "report.md": report(out, table, tmp_path)}
+    assert regenerate(page, check=True) == 1
+    assert "report.md: differs" in capsys.readouterr().err

@@ -21,4 +21,6 @@ library"). One job a module, lowest first:
     before_parity  the superseded investigations' pages (knob, 20 M, the TPN's budget)
     convergence  the rule that says when a row has stopped learning, and the trainer's
                  stop criterion built on it (--until-converged)
+    convergence_page  the budget campaign's page: the rule per row, val by span of env
+                 steps, a table's rows by tenth of their budget
 """

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+# metrics.jsonl's typed reader itself, not tables.runs.val_records: runs imports the
+# evaluation (jax), and api imports this module (its stop criterion) while staying jax-free
 from orgnav_jax.training.run_dir import read_metrics
 
 TOLERANCE = 1.0            # points of val success between the last two quarters
