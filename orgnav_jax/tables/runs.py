@@ -20,8 +20,7 @@ from orgnav_jax.evaluation import episodes_from_record, summarize
 from orgnav_jax.tables.layout import existing_results, pretrain_dir, run_dir
 from orgnav_jax.tables.rows import Row
 from orgnav_jax.tables.spec import read_table_spec, table_scenes
-from orgnav_jax.training.config import load_config
-from orgnav_jax.training.pretrain import load_pretrain_config
+from orgnav_jax.training.config import load_config, load_pretrain_config
 from orgnav_jax.training.run_dir import CONFIG_FILE, METRICS_FILE, is_run_dir, read_metrics
 
 
