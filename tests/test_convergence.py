@@ -37,6 +37,19 @@ def test_a_flat_curve_has_converged_and_a_rising_one_has_not():
     assert "beyond 1" in r.why
 
 
+def test_the_rule_asks_the_quarter_test_to_hold_from_b_to_a_quarter_more():
+    flat = np.full(49, 0.60)
+    v = cv.converged(curve(flat, flat))           # held since 40 evaluations, not to 50
+    assert not v.converged and v.budget is None and "confirmed at 1.25 x that" in v.why
+    v = cv.converged(curve(np.full(50, 0.6), np.full(50, 0.6)))
+    assert v.converged and v.budget == 40 * STEP and "converged at B = 8,192,000" in v.why
+    # a break in the run of evaluations where the quarter test holds starts it again
+    s = np.r_[np.full(44, 0.60), np.full(100, 0.66)]    # a 6-point step at 44
+    assert cv.judge(curve(s, s), upto=44).converged
+    first = cv.converged_at(curve(s, s))
+    assert first.budget > 80 * STEP and first.env_steps >= 1.25 * first.budget
+
+
 def test_the_rule_judges_the_seed_mean_and_its_quarters():
     """Two seeds rising in opposite directions average to flat: converged; the quarters
     are the last n // 4 evaluations against the n // 4 before them."""
@@ -95,10 +108,11 @@ def write_metrics(run_dir, success, episodes=1000, extra_last=False, cut=False):
 
 
 def test_check_runs_reads_the_runs_metrics_and_their_shared_steps(tmp_path):
-    write_metrics(tmp_path / "a", [0.5] * 41, cut=True)    # one more evaluation, a cut line
-    write_metrics(tmp_path / "b", [0.5] * 40)
+    write_metrics(tmp_path / "a", [0.5] * 51, cut=True)    # one more evaluation, a cut line
+    write_metrics(tmp_path / "b", [0.5] * 50)
     v = cv.check_runs([tmp_path / "a", tmp_path / "b"])
-    assert v.converged and v.evaluations == 40 and v.env_steps == 40 * STEP
+    assert v.converged and v.evaluations == 50 and v.env_steps == 50 * STEP
+    assert v.budget == 40 * STEP                # held from 40 evaluations, to 1.25 x that
     write_metrics(tmp_path / "c", [])
     with pytest.raises(ValueError, match=r"c/metrics.jsonl: no val evaluation"):
         cv.read_val_curve(tmp_path / "c")
@@ -183,7 +197,7 @@ def test_the_campaign_page_judges_each_row_and_check_sees_a_change(tmp_path, cap
     assert "| baseline | 2 | " in text            # the table's rows by tenth
     lines = verdict_lines(rows_of(sorted((out / "runs").iterdir())))
     assert lines[0].startswith("flat: converged (seed-mean val success 50.0")
-    assert lines[1].startswith("rising: not converged") and "has not held yet" in lines[1]
+    assert lines[1].startswith("rising: not converged") and "has not said converged yet" in lines[1]
     page = {out / "report.md": text}
     assert regenerate(page, check=False) == 0 and regenerate(page, check=True) == 0
     write_metrics(out / "runs" / "flat-s102", plateau[:-1] + [0.9])

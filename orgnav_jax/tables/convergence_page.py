@@ -13,8 +13,8 @@ import re
 from pathlib import Path
 
 from orgnav_jax.tables.convergence import (
-    MIN_EVALUATIONS, MIN_SEEDS, MIN_VAL_EPISODES, TOLERANCE, applicable, converged_at,
-    judge, read_val_curve, seed_mean_curve, seed_span_means, span_means,
+    CONFIRM, MIN_EVALUATIONS, MIN_SEEDS, MIN_VAL_EPISODES, TOLERANCE, applicable, converged,
+    converged_at, read_val_curve, seed_mean_curve, seed_span_means, span_means,
 )
 from orgnav_jax.training.config import load_config
 
@@ -43,9 +43,9 @@ def verdict_lines(rows: dict[str, list[Path]]) -> list[str]:
         if why:
             out.append(f"{row}: not judged ({why})")
             continue
-        v, first = judge(curve), converged_at(curve)
-        where = (f"first held at {first.env_steps:,} env steps" if first
-                 else "has not held yet")
+        v, first = converged(curve), converged_at(curve)
+        where = (f"first said converged at {first.env_steps:,} env steps (B = "
+                 f"{first.budget:,})" if first else "has not said converged yet")
         out.append(f"{row}: {'converged' if v.converged else 'not converged'} ({v.why}); "
                    f"{where}")
     return out
@@ -59,7 +59,7 @@ def setting(run_dir: Path) -> str:
 
 def campaign_table(rows: dict[str, list[Path]]) -> list[str]:
     lines = ["| row | setting | seeds | evaluations | to env step | last quarter | quarter "
-             "before | change | rule | first held at (B) |",
+             "before | change | rule | B (said at) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for row, dirs in rows.items():
         curve = seed_mean_curve([read_val_curve(d) for d in dirs])
@@ -70,13 +70,15 @@ def campaign_table(rows: dict[str, list[Path]]) -> list[str]:
         if why:
             lines.append(f"{head} | | | not judged: {why} | |")
             continue
-        v, first = judge(curve), converged_at(curve)
+        v, first = converged(curve), converged_at(curve)
         fmt = lambda x: "-" if x is None else f"{x:.1f}"
         change = "-" if v.change is None else f"{v.change:+.1f}"
         rule = "converged" if v.converged else (
-            "too short" if v.change is None else "not converged")
+            "too short" if v.change is None else
+            "quarter test holds, not confirmed yet" if abs(v.change) <= TOLERANCE
+            else "not converged")
         lines.append(f"{head} {fmt(v.last_quarter)} | {fmt(v.quarter_before)} | {change} | "
-                     f"{rule} | {f'{first.env_steps:,}' if first else '-'} |")
+                     f"{rule} | {f'{first.budget:,} (at {first.env_steps:,})' if first else '-'} |")
     return lines
 
 
@@ -133,10 +135,11 @@ def report(out: Path, table_5m: Path, root: Path) -> str:
             "files (`--check` recomputes it). The rule (docs/results.md, \"When a row has "
             "converged\"; `orgnav_jax/tables/convergence.py`): seed-mean val success of at "
             f"least {MIN_SEEDS} seeds in one program, {MIN_VAL_EPISODES:,}-episode "
-            f"val evaluations, at least {MIN_EVALUATIONS} of them; converged when the "
-            f"last quarter of the evaluations is within {TOLERANCE:g} point of the "
-            "quarter before. Runs: calibrated preset, seeds 100-101, val every 204,800 "
-            "env steps (`runs/`).", ""]
+            f"val evaluations, at least {MIN_EVALUATIONS} of them; the quarter test holds "
+            f"when the last quarter of the evaluations is within {TOLERANCE:g} point of "
+            "the quarter before; the row has converged at B when the quarter test has "
+            f"held at every evaluation from B to {CONFIRM:g} B. Runs: calibrated preset, "
+            "seeds 100-101, val every 204,800 env steps (`runs/`).", ""]
     if rows:
         text += ["## The rule on each row", "", *campaign_table(rows), "",
                  "## Val success by span of env steps (seed mean, points)", "",
