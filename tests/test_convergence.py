@@ -204,3 +204,14 @@ def test_the_campaign_page_judges_each_row_and_check_sees_a_change(tmp_path, cap
     page = {out / "report.md": report(out, table, tmp_path)}
     assert regenerate(page, check=True) == 1
     assert "report.md: differs" in capsys.readouterr().err
+
+
+def test_the_committed_campaign_page_agrees_with_its_runs():
+    """experiments/results/convergence/report.md is what its runs' committed files give
+    (`python experiments/convergence.py report --check`)."""
+    from pathlib import Path
+    from orgnav_jax.tables.convergence_page import report
+    root = Path(__file__).resolve().parents[1]
+    out = root / "experiments" / "results" / "convergence"
+    text = report(out, root / "experiments" / "results" / "table_calibrated", root)
+    assert (out / "report.md").read_text() == text
