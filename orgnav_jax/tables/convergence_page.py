@@ -14,7 +14,7 @@ from pathlib import Path
 
 from orgnav_jax.tables.convergence import (
     CONFIRM, MIN_EVALUATIONS, MIN_SEEDS, MIN_VAL_EPISODES, TOLERANCE, applicable, converged,
-    converged_at, read_val_curve, seed_mean_curve, seed_span_means, span_means,
+    SeedMeanCurve, converged_at, read_val_curve, seed_mean_curve, seed_span_means, span_means,
 )
 from orgnav_jax.training.config import load_config
 
@@ -57,12 +57,18 @@ def setting(run_dir: Path) -> str:
     return (f"{c.model}, IL {c.il}, {c.num_envs} envs x {c.rollout_len} steps, lr {c.lr:g}")
 
 
-def campaign_table(rows: dict[str, list[Path]]) -> list[str]:
+def row_curves(rows: dict[str, list[Path]]) -> dict[str, SeedMeanCurve]:
+    """Each row's seed-mean val curve, read once for every table of the page."""
+    return {row: seed_mean_curve([read_val_curve(d) for d in dirs])
+            for row, dirs in rows.items()}
+
+
+def campaign_table(rows: dict[str, list[Path]], curves: dict[str, SeedMeanCurve]) -> list[str]:
     lines = ["| row | setting | seeds | evaluations | to env step | last quarter | quarter "
              "before | change | rule | B (said at) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for row, dirs in rows.items():
-        curve = seed_mean_curve([read_val_curve(d) for d in dirs])
+        curve = curves[row]
         seeds = ", ".join(d.name.rpartition("-s")[2] for d in dirs)
         head = f"| {row} | {setting(dirs[0])} | {seeds} | {len(curve.steps)} | " \
                f"{int(curve.steps[-1]):,} |"
@@ -82,11 +88,9 @@ def campaign_table(rows: dict[str, list[Path]]) -> list[str]:
     return lines
 
 
-def span_table(rows: dict[str, list[Path]], edges_m) -> list[str]:
+def span_table(curves: dict[str, SeedMeanCurve], edges_m) -> list[str]:
     """Seed-mean val success (points) per span of env steps (millions), spans that some
     row reached."""
-    curves = {row: seed_mean_curve([read_val_curve(d) for d in dirs])
-              for row, dirs in rows.items()}
     last = max(int(c.steps[-1]) for c in curves.values())
     edges = [e for e in edges_m if e * 1_000_000 < last] + [
         next((e for e in edges_m if e * 1_000_000 >= last), edges_m[-1])]
@@ -141,9 +145,10 @@ def report(out: Path, table_5m: Path, root: Path) -> str:
             f"held at every evaluation from B to {CONFIRM:g} B. Runs: calibrated preset, "
             "seeds 100-101, val every 204,800 env steps (`runs/`).", ""]
     if rows:
-        text += ["## The rule on each row", "", *campaign_table(rows), "",
+        curves = row_curves(rows)
+        text += ["## The rule on each row", "", *campaign_table(rows, curves), "",
                  "## Val success by span of env steps (seed mean, points)", "",
-                 *span_table(rows, SPANS_M), ""]
+                 *span_table(curves, SPANS_M), ""]
     text += ["## The 5 M calibrated table's rows, by tenth of their budget", "",
              "Seed-mean val success (points; 200-episode evaluations, seeds 0-4) over each "
              "tenth of the 5,017,600 env steps, from "
