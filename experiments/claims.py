@@ -25,8 +25,8 @@ the runs' provenance.json records. The claims, the statistics and the files are 
 tables library's (orgnav_jax/tables: claims.py, stats.py, table_files.py).
 
 --check recomputes results.json, table.md and claims.md (and provenance.md, where the
-table has one) from the runs' files and exits 1 on any difference (CI runs it on the
-committed tables).
+table has one; convergence.md, where its spec has "converged": true) from the runs' files
+and exits 1 on any difference (CI runs it on the committed tables).
 """
 
 from __future__ import annotations

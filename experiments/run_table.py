@@ -45,6 +45,10 @@ vmapped population axis of one jitted chunk: api.train_seeds) before the table i
 filled; the run directories, resumption and results are the same as without it (seeds
 of a row that were started one by one are finished one by one).
 
+A spec with `"converged": true` (population, >= 2 seeds, 1,000-episode val evaluations)
+also gets OUT/convergence.md: the convergence rule on every trained row at its budget,
+and claims.md names the rows not converged (docs/results.md, "When a row has converged").
+
 VTNet's rows (issue 43, docs/vtnet.md): `vtnet` pre-trains each seed's visual
 transformer on the expert's actions first (api.pretrain of the seed's PretrainConfig, in
 OUT/runs/vtnet-pretrain-s<seed> beside the row's runs: config.json, metrics.jsonl with

@@ -236,6 +236,27 @@ def test_run_table_spec_is_checked(tmp_path):
         bad.write_text(json.dumps(dict(good, **change)))
         with pytest.raises(ValueError, match=match):
             spec.read_spec(bad)
+    # "converged": true needs what the convergence rule judges
+    judged = dict(good, converged=True, config=dict(good["config"],
+                                                    eval_episodes_per_room_type=250))
+    ok = tmp_path / "judged.json"
+    ok.write_text(json.dumps(judged))
+    assert spec.read_spec(ok)["converged"] is True
+    for change, match in (
+            ({"converged": "yes"}, "field 'converged' is not a bool"),
+            ({"population": False}, "field 'population': \"converged\": true .* needs the "
+                                    "seeds of a row trained in one program"),
+            ({"seeds": [0]}, "field 'seeds': \"converged\": true .* needs at least 2 seeds"),
+            ({"config": dict(good["config"], eval_episodes_per_room_type=249)},
+             "field 'config': eval_episodes_per_room_type 249 gives val evaluations of 996 "
+             "episodes; .* at least 1,000"),
+            ({"config": good["config"]},             # the default: 50 per room type
+             "field 'config': eval_episodes_per_room_type 50 gives")):
+        bad = tmp_path / "spec.json"
+        bad.write_text(json.dumps(dict(judged, **change)))
+        with pytest.raises(ValueError, match=f"table spec {bad}: {match}") as err:
+            spec.read_spec(bad)
+        assert "\n" not in str(err.value)
 
 
 def test_provenance_counts_code_changes_not_the_tables_own_files(tmp_path, monkeypatch):

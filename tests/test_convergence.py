@@ -94,12 +94,12 @@ def test_the_rule_refuses_one_seed_and_small_evaluations():
         cv.judge(curve(np.full(20, 0.5), np.full(20, 0.5), episodes=200))
 
 
-def write_metrics(run_dir, success, episodes=1000, extra_last=False, cut=False):
+def write_metrics(run_dir, success, episodes=1000, extra_last=False, cut=False, step=STEP):
     run_dir.mkdir(parents=True)
     lines = []
     for i, s in enumerate(success, 1):
-        lines.append({"kind": "train", "env_steps": i * STEP, "success": 0.1})
-        lines.append({"kind": "val", "env_steps": i * STEP, "episodes": episodes,
+        lines.append({"kind": "train", "env_steps": i * step, "success": 0.1})
+        lines.append({"kind": "val", "env_steps": i * step, "episodes": episodes,
                       "success": s, "spl": 0.2})
     text = "".join(json.dumps(r) + "\n" for r in lines)
     if cut:
@@ -204,6 +204,57 @@ def test_the_campaign_page_judges_each_row_and_check_sees_a_change(tmp_path, cap
     page = {out / "report.md": report(out, table, tmp_path)}
     assert regenerate(page, check=True) == 1
     assert "report.md: differs" in capsys.readouterr().err
+
+
+def test_a_converged_table_judges_each_trained_row_and_says_so_in_its_claims(tmp_path,
+                                                                             capsys):
+    """A spec with "converged": true: convergence.md has the rule on each trained
+    navigation row (a TPN row's base once, not random), claims.md names the rows not
+    converged and their claims, and --check sees a changed curve."""
+    from helpers import experiment_script
+    from orgnav_jax.tables import table_files
+    claims = experiment_script("claims")
+    spec = {"out": str(tmp_path), "seeds": [0, 1], "population": True, "converged": True,
+            "config": {"eval_episodes_per_room_type": 250}, "tpn": {},
+            "rows": ["random", "baseline", "il", "org", "dsp", "baseline+tpn@1e-4", "we"]}
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    runs = tmp_path / "runs"
+    for seed in (0, 1):
+        write_metrics(runs / f"baseline-s{seed}", [0.5] * 50)                  # flat
+        write_metrics(runs / f"il-s{seed}", np.linspace(0.1, 0.6, 50).tolist())  # rising
+        write_metrics(runs / f"org-s{seed}", [0.5] * 50, episodes=200)
+    write_metrics(runs / "dsp-s0", [0.5] * 50)
+    write_metrics(runs / "dsp-s1", [0.5] * 50, step=STEP + 1)      # no step in common
+    assert claims.main([str(tmp_path)]) == 0
+    page = (tmp_path / "convergence.md").read_text().splitlines()
+    rows = {line.split(" | ")[0][2:]: line for line in page if line.startswith("| ")}
+    assert list(rows) == ["row", "baseline", "il", "org", "dsp", "we"]
+    assert rows["baseline"] == ("| baseline | 0, 1 | 50 | 10,240,000 | 50.0 | 50.0 | +0.0 | "
+                                "converged (B' = 8,192,000) |")
+    assert rows["il"].endswith("| not converged |") and "| 0, 1 | 50 | " in rows["il"]
+    assert rows["org"].endswith("| not judged: val evaluations of 200 episodes: the rule "
+                                "needs at least 1,000 (--eval-episodes-per-room-type 250) |")
+    assert rows["dsp"].endswith("| not judged: the runs share no val evaluation step: "
+                                "dsp-s0, dsp-s1 |")
+    assert rows["we"] == "| we | | | | | | | no runs yet |"
+    text = (tmp_path / "claims.md").read_text()
+    assert "**Not converged** by the convergence rule at their last val evaluation " \
+           "(convergence.md): il, org, dsp, we." in text
+    notes = [x[2:] for x in text.splitlines() if x.startswith("- ")]
+    assert notes == ["Baseline > WE", "ORG > Baseline", "ORG > D-SP", "IL > Baseline",
+                     "D-SP > WE"]                 # (a prediction of the calibrated preset)
+    assert "- Baseline + TPN > Baseline" not in text        # baseline has converged
+    assert claims.main(["--check", str(tmp_path)]) == 0
+    write_metrics(runs / "baseline-s2", [0.5] * 50)         # not a seed of the spec
+    assert table_files.check(tmp_path) == []
+    (runs / "il-s1" / "metrics.jsonl").unlink()
+    assert claims.main(["--check", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "convergence.md: differs" in err and "claims.md: differs" not in err
+    spec["converged"] = False                   # without the rule: no page, no note
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    files = table_files.expected_files(tmp_path)
+    assert "convergence.md" not in files and "Not converged" not in files["claims.md"]
 
 
 def test_the_committed_campaign_page_agrees_with_its_runs():

@@ -5,6 +5,7 @@ bootstrap interval, one-sided p and three-level verdict (stats.statistics).
 
     claims(lr, spec)            the claims of a table (its spec decides the later ones)
     claims_table(...)           claims.md;  compact(...) the README's short form
+    not_converged_note(...)     claims.md's note on rows the convergence rule has not passed
     before_after(out, before)   each claim in two tables, and whether its verdict changed
     per_category(out, row, ref) a row against another per target category
 
@@ -23,7 +24,7 @@ from orgnav_jax.constants import CATEGORIES
 from orgnav_jax.scenes.synthetic.catalog import ANCHORS
 from orgnav_jax.tables import stats
 from orgnav_jax.tables.layout import existing_results, run_dir
-from orgnav_jax.tables.rows import lr_tag
+from orgnav_jax.tables.rows import Row, lr_tag
 from orgnav_jax.tables.runs import check_run_scenes, read_results_doc, read_table_dir
 from orgnav_jax.tables.spec import read_table_spec, table_scenes
 
@@ -150,6 +151,25 @@ def claims_table(results: dict, episodes: dict, lr: str, spec: dict | None = Non
             f"{s['verdict']}{zero} | {p['mean']:+.1f} {stats.interval_text(p['interval'])} | "
             f"{p['verdict']} |")
     return "\n".join(lines) + "\n\n" + full_model_best(results, lr)
+
+
+def not_converged_note(lr: str, spec: dict, rows: list[str]) -> str:
+    """claims.md's note for a table whose spec has "converged": true, given its rows that
+    have not converged by the rule (convergence_page.table_convergence): those rows and
+    the claims of the spec's rows whose row or reference row is one of them or builds on
+    one (a TPN row on its base), which are not judged at convergence."""
+    if not rows:
+        return ("\nEvery trained row has converged by the convergence rule at its last val "
+                "evaluation (convergence.md).\n")
+    affected = [name for name, row, ref, _ in claims(lr, spec)
+                if row in spec["rows"] and ref in spec["rows"]
+                and {Row.of(row).base, Row.of(ref).base} & set(rows)]
+    head = (f"\n**Not converged** by the convergence rule at their last val evaluation "
+            f"(convergence.md): {', '.join(rows)}. ")
+    if not affected:
+        return head + "No claim of the table compares them.\n"
+    return head + "Their claims are not judged at convergence:\n\n" + "".join(
+        f"- {name}\n" for name in affected)
 
 
 def category_groups() -> dict[str, list[str]]:

@@ -1,21 +1,27 @@
 """The budget campaign's page: the convergence rule (tables/convergence.py) on each row
 of runs, their val success by span of env steps, and a finished table's rows by tenth of
-their budget (experiments/convergence.py writes or --checks it).
+their budget (experiments/convergence.py writes or --checks it); and a table's
+convergence.md, the rule on each of its trained rows (a spec with "converged": true).
 
     rows = rows_of(run_dirs)                  # {row: [its seeds' run directories]}
     lines = verdict_lines(rows)               # the rule per row, in words
     text = report(out, table_5m, root)        # experiments/results/convergence/report.md
+    text, not_converged = table_convergence(out, spec)    # OUT/convergence.md
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
 from orgnav_jax.tables.convergence import (
     CONFIRM, MIN_EVALUATIONS, MIN_SEEDS, MIN_VAL_EPISODES, TOLERANCE, applicable, converged,
-    SeedMeanCurve, converged_at, read_val_curve, seed_mean_curve, seed_span_means, span_means,
+    SeedMeanCurve, Verdict, converged_at, read_val_curve, seed_mean_curve, seed_span_means,
+    span_means,
 )
+from orgnav_jax.tables.layout import run_dir
+from orgnav_jax.tables.rows import RANDOM, Row
 from orgnav_jax.training.config import load_config
 
 SEED_SUFFIX = re.compile(r"-s\d+$")
@@ -63,6 +69,34 @@ def row_curves(rows: dict[str, list[Path]]) -> dict[str, SeedMeanCurve]:
             for row, dirs in rows.items()}
 
 
+def rule_text() -> str:
+    """The rule in one sentence, for the pages' headers."""
+    return ("The rule (docs/results.md, \"When a row has converged\"; "
+            "`orgnav_jax/tables/convergence.py`): seed-mean val success of at least "
+            f"{MIN_SEEDS} seeds in one program, {MIN_VAL_EPISODES:,}-episode val "
+            f"evaluations, at least {MIN_EVALUATIONS} of them; the quarter test holds when "
+            f"the last quarter of the evaluations is within {TOLERANCE:g} point of the "
+            "quarter before; the row has converged at B when the quarter test has held at "
+            f"every evaluation from B to {CONFIRM:g} B.")
+
+
+def quarter_cells(v: Verdict) -> str:
+    """A verdict's last quarter | quarter before | change, as table cells ('-' where the
+    curve is too short to have quarters)."""
+    fmt = lambda x: "-" if x is None else f"{x:.1f}"
+    change = "-" if v.change is None else f"{v.change:+.1f}"
+    return f"{fmt(v.last_quarter)} | {fmt(v.quarter_before)} | {change}"
+
+
+def rule_state(v: Verdict) -> str:
+    """The rule's verdict in words: converged, too short, quarter test holds, not
+    confirmed yet, or not converged."""
+    return "converged" if v.converged else (
+        "too short" if v.change is None else
+        "quarter test holds, not confirmed yet" if abs(v.change) <= TOLERANCE
+        else "not converged")
+
+
 def campaign_table(rows: dict[str, list[Path]], curves: dict[str, SeedMeanCurve]) -> list[str]:
     lines = ["| row | setting | seeds | evaluations | to env step | last quarter | quarter "
              "before | change | rule | B (said at) |",
@@ -77,14 +111,8 @@ def campaign_table(rows: dict[str, list[Path]], curves: dict[str, SeedMeanCurve]
             lines.append(f"{head} | | | not judged: {why} | |")
             continue
         v, first = converged(curve), converged_at(curve)
-        fmt = lambda x: "-" if x is None else f"{x:.1f}"
-        change = "-" if v.change is None else f"{v.change:+.1f}"
-        rule = "converged" if v.converged else (
-            "too short" if v.change is None else
-            "quarter test holds, not confirmed yet" if abs(v.change) <= TOLERANCE
-            else "not converged")
-        lines.append(f"{head} {fmt(v.last_quarter)} | {fmt(v.quarter_before)} | {change} | "
-                     f"{rule} | {f'{first.budget:,} (at {first.env_steps:,})' if first else '-'} |")
+        lines.append(f"{head} {quarter_cells(v)} | {rule_state(v)} | "
+                     f"{f'{first.budget:,} (at {first.env_steps:,})' if first else '-'} |")
     return lines
 
 
@@ -123,10 +151,15 @@ def tenths_table(table_dir: Path, rows: tuple[str, ...]) -> list[str]:
     return lines
 
 
+def has_val(run: Path) -> bool:
+    """Whether a run directory's metrics.jsonl holds a val evaluation."""
+    return (run / "metrics.jsonl").is_file() and \
+        '"kind": "val"' in (run / "metrics.jsonl").read_text()
+
+
 def campaign_rows(out: Path) -> dict[str, list[Path]]:
     """The campaign's rows whose runs have logged a val evaluation."""
-    runs = sorted(p for p in (out / "runs").glob("*-s*") if (p / "metrics.jsonl").is_file()
-                  and '"kind": "val"' in (p / "metrics.jsonl").read_text())
+    runs = sorted(p for p in (out / "runs").glob("*-s*") if has_val(p))
     return rows_of(runs) if runs else {}
 
 
@@ -136,13 +169,7 @@ def report(out: Path, table_5m: Path, root: Path) -> str:
     rows = campaign_rows(out)
     text = ["# Convergence: the budget and the fastest setting, on val", "",
             "Written by `python experiments/convergence.py report` from the runs' committed "
-            "files (`--check` recomputes it). The rule (docs/results.md, \"When a row has "
-            "converged\"; `orgnav_jax/tables/convergence.py`): seed-mean val success of at "
-            f"least {MIN_SEEDS} seeds in one program, {MIN_VAL_EPISODES:,}-episode "
-            f"val evaluations, at least {MIN_EVALUATIONS} of them; the quarter test holds "
-            f"when the last quarter of the evaluations is within {TOLERANCE:g} point of "
-            "the quarter before; the row has converged at B when the quarter test has "
-            f"held at every evaluation from B to {CONFIRM:g} B. Runs: calibrated preset, "
+            f"files (`--check` recomputes it). {rule_text()} Runs: calibrated preset, "
             "seeds 100-101, val every 204,800 env steps (`runs/`).", ""]
     if rows:
         curves = row_curves(rows)
@@ -155,3 +182,60 @@ def report(out: Path, table_5m: Path, root: Path) -> str:
              f"`{table_5m.relative_to(root).as_posix()}/runs/*/metrics.jsonl`:", "",
              *tenths_table(table_5m, TABLE_5M_ROWS), ""]
     return "\n".join(text)
+
+
+def table_rows(out: Path, spec: dict) -> dict[str, list[Path]]:
+    """A table's trained navigation rows (not random; of a TPN row its base row, each
+    once), in the spec's order -> the run directories OUT/runs/ROW-sS of its seeds that
+    have logged a val evaluation."""
+    bases = dict.fromkeys(Row.of(name).base for name in spec["rows"])
+    return {base: [d for d in (run_dir(out, base, s) for s in spec["seeds"]) if has_val(d)]
+            for base in bases if base != RANDOM}
+
+
+def table_row_rule(dirs: list[Path]) -> tuple[str, bool]:
+    """A table row's run directories -> its convergence.md cells after the row's name
+    (seeds | evaluations | to env step | last quarter | quarter before | change | verdict)
+    and whether it has converged by the rule at its last shared evaluation."""
+    if not dirs:
+        return "| | | | | | no runs yet", False
+    seeds = ", ".join(d.name.rpartition("-s")[2] for d in dirs)
+    # runs named by their directory: the page reads the same wherever the table lies
+    curves = [dataclasses.replace(read_val_curve(d), where=d.name) for d in dirs]
+    try:
+        curve = seed_mean_curve(curves)
+    except ValueError as err:                 # the runs share no val evaluation step
+        return f"{seeds} | | | | | | not judged: {err}", False
+    head = f"{seeds} | {len(curve.steps)} | {int(curve.steps[-1]):,}"
+    why = applicable(curve)
+    if why:
+        return f"{head} | | | | not judged: {why}", False
+    v = converged(curve)
+    if v.converged:
+        verdict = f"converged (B' = {v.budget:,})"
+    else:                                     # too short, not confirmed yet: said in ()
+        state = rule_state(v)
+        verdict = "not converged" + ("" if state == "not converged" else f" ({state})")
+    return f"{head} | {quarter_cells(v)} | {verdict}", v.converged
+
+
+def table_convergence(out: Path, spec: dict) -> tuple[str, list[str]]:
+    """A table whose spec has "converged": true -> its convergence.md (the rule on each
+    trained navigation row at its last val evaluation, from OUT/runs) and the rows that
+    have not converged by it (listed in claims.md)."""
+    lines = ["# The convergence rule on each trained row", "",
+             "Written by `python experiments/claims.py OUT` from the runs' val curves "
+             "(`--check` recomputes it); the spec's `\"converged\": true` asks every row "
+             "trained for the table's budget to pass the rule at its last val evaluation. "
+             f"{rule_text()} B' is that B for the row; a TPN row is judged by its base "
+             "row's runs; a row that has not converged is named in claims.md, and its "
+             "claims are not judged at convergence.", "",
+             "| row | seeds | evaluations | to env step | last quarter | quarter before | "
+             "change | verdict |", "|---|---|---|---|---|---|---|---|"]
+    not_converged = []
+    for row, dirs in table_rows(out, spec).items():
+        cells, ok = table_row_rule(dirs)
+        lines.append(f"| {row} | {cells} |")
+        if not ok:
+            not_converged.append(row)
+    return "\n".join(lines) + "\n", not_converged

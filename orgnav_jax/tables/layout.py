@@ -2,6 +2,7 @@
 
     OUT/spec.json                      the table's definition (spec.py)
     OUT/results.json, table.md, claims.md, provenance.md, curves.png    generated
+    OUT/convergence.md                 generated for a spec with "converged": true
     OUT/runs/ROW-sS/                   row ROW's run of seed S: config.json, metrics.jsonl,
                                        test_results.json, provenance.json
     OUT/runs/BASE-sS/tpn/              the TPN (stage 2) of BASE's run; a row
@@ -18,7 +19,7 @@ from orgnav_jax.tables.rows import Row
 
 # the files run_table.py (re)writes in OUT
 TABLE_FILES = ("spec.json", "results.json", "table.md", "claims.md", "provenance.md",
-               "curves.png")
+               "curves.png", "convergence.md")
 
 
 def run_dir(out: Path, row: str | Row, seed: int | str) -> Path:

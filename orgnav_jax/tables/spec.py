@@ -1,25 +1,29 @@
 """A table's spec: its one definition (JSON: out, rows, seeds, config overrides, tpn
-fields; optionally about and population), e.g. experiments/tables/table_5m.json, copied to
-OUT/spec.json when the table is made."""
+fields; optionally about, population and converged), e.g.
+experiments/tables/table_5m.json, copied to OUT/spec.json when the table is made.
+`"converged": true` asks the table to judge every trained row by the convergence rule
+(tables/convergence.py) at its budget: OUT/convergence.md (table_files)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-from orgnav_jax.constants import DEFAULT_SCENE_PRESET
+from orgnav_jax.constants import DEFAULT_SCENE_PRESET, ROOM_TYPES
 from orgnav_jax.errors import INT32_MAX, is_int, shown
+from orgnav_jax.tables.convergence import MIN_SEEDS, MIN_VAL_EPISODES
 from orgnav_jax.tables.rows import parse_row
 from orgnav_jax.tpn.config import get_tpn_config
 from orgnav_jax.training.config import get_config
 
 SPEC_KEYS = {"out": str, "rows": list, "seeds": list, "config": dict, "tpn": dict}
-SPEC_OPTIONAL = {"about": str, "population": bool}
+SPEC_OPTIONAL = {"about": str, "population": bool, "converged": bool}
 
 
 def read_spec(path: str | Path) -> dict:
-    """A table spec (JSON: out, rows, seeds, config, tpn) -> dict; ValueError naming the
-    file and the field otherwise."""
+    """A table spec (JSON: out, rows, seeds, config, tpn; optionally about, population,
+    converged) -> dict; ValueError naming the file and the field otherwise (with
+    "converged": true, also where the rule could not judge its rows: check_rule_applies)."""
     if Path(path).is_dir():
         raise ValueError(f"table spec {path}: a directory, expected a JSON file")
     try:
@@ -56,9 +60,31 @@ def read_spec(path: str | Path) -> dict:
             raise ValueError(f"table spec {path}: field {key!r}: an entry appears twice")
     if not spec["out"]:
         raise ValueError(f"table spec {path}: field 'out': expected a directory, got ''")
-    get_config("baseline", **spec["config"])          # names a bad field or value
+    cfg = get_config("baseline", **spec["config"])    # names a bad field or value
     get_tpn_config(base_dir="runs/x", **spec["tpn"])
+    if spec.get("converged"):
+        check_rule_applies(path, spec, cfg.eval_episodes_per_room_type)
     return spec
+
+
+def check_rule_applies(path: str | Path, spec: dict, eval_episodes_per_room_type: int
+                       ) -> None:
+    """A spec with "converged": true: ValueError (one line, naming the file and the field)
+    unless its rows' seeds train in one program (population), there are at least
+    MIN_SEEDS of them and each val evaluation has at least MIN_VAL_EPISODES episodes."""
+    need = "\"converged\": true (the convergence rule) needs"
+    if spec.get("population") is not True:
+        raise ValueError(f"table spec {path}: field 'population': {need} the seeds of a "
+                         "row trained in one program: \"population\": true")
+    if len(spec["seeds"]) < MIN_SEEDS:
+        raise ValueError(f"table spec {path}: field 'seeds': {need} at least {MIN_SEEDS} "
+                         f"seeds, got {len(spec['seeds'])}")
+    episodes = eval_episodes_per_room_type * len(ROOM_TYPES)
+    if episodes < MIN_VAL_EPISODES:
+        raise ValueError(f"table spec {path}: field 'config': eval_episodes_per_room_type "
+                         f"{eval_episodes_per_room_type} gives val evaluations of {episodes:,}"
+                         f" episodes; {need} at least {MIN_VAL_EPISODES:,} (250 per room "
+                         "type)")
 
 
 def read_table_spec(out: Path) -> dict:

@@ -1,7 +1,8 @@
 """A table directory's generated files, made from its runs' files and nothing else:
-results.json, table.md (table.py), claims.md (claims.py) and provenance.md
-(provenance.py); written together, or checked (`claims.py --check` on every committed
-table; tests/test_claims.py runs it)."""
+results.json, table.md (table.py), claims.md (claims.py), provenance.md (provenance.py)
+and, for a spec with "converged": true, convergence.md (convergence_page.py); written
+together, or checked (`claims.py --check` on every committed table; tests/test_claims.py
+runs it)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import json
 from pathlib import Path
 
 from orgnav_jax.tables import pages
-from orgnav_jax.tables.claims import claims_table
+from orgnav_jax.tables.claims import claims_table, not_converged_note
+from orgnav_jax.tables.convergence_page import table_convergence
 from orgnav_jax.tables.layout import existing_results, pretrain_dir, run_dir
 from orgnav_jax.tables.provenance import PROVENANCE_FILE, provenance_table, read_provenance
 from orgnav_jax.tables.rows import Row, lr_tag
@@ -21,17 +23,24 @@ OPTIONAL_FILES = ("provenance.md",)
 
 
 def expected_files(out: Path) -> dict[str, str]:
-    """results.json, table.md, claims.md and provenance.md as the runs' files give them."""
+    """results.json, table.md, claims.md and provenance.md as the runs' files give them;
+    with the spec's "converged": true also convergence.md, and claims.md names the rows
+    that have not converged (claims.not_converged_note)."""
     spec, results, episodes = read_table_dir(out)
-    return {"results.json": json.dumps(results, indent=1),
-            "table.md": table_text(results),
-            "claims.md": claims_table(results, episodes, lr_tag(spec["rows"]), spec),
-            "provenance.md": provenance_table(out)}
+    lr = lr_tag(spec["rows"])
+    files = {"results.json": json.dumps(results, indent=1),
+             "table.md": table_text(results),
+             "claims.md": claims_table(results, episodes, lr, spec),
+             "provenance.md": provenance_table(out)}
+    if spec.get("converged"):
+        files["convergence.md"], not_converged = table_convergence(out, spec)
+        files["claims.md"] += not_converged_note(lr, spec, not_converged)
+    return files
 
 
 def write_all(out: Path) -> dict[str, str]:
-    """Write results.json, table.md, claims.md and provenance.md of `out` from its runs'
-    files (all read and checked first: a bad file writes nothing) -> their texts."""
+    """Write the generated files of `out` (expected_files) from its runs' files (all
+    read and checked first: a bad file writes nothing) -> their texts."""
     files = expected_files(out)
     pages.write_pages({out / name: text for name, text in files.items()})
     return files
