@@ -266,3 +266,43 @@ def test_the_committed_campaign_page_agrees_with_its_runs():
     out = root / "experiments" / "results" / "convergence"
     text = report(out, root / "experiments" / "results" / "table_calibrated", root)
     assert (out / "report.md").read_text() == text
+
+
+def test_the_campaign_run_starts_resumes_and_records_why_it_stopped(tmp_path, monkeypatch):
+    """`convergence.py run ROW`: a fresh row starts with the campaign's setting, a second
+    call resumes it with its saved config and the cap; every process leaves a provenance
+    record in both runs, also when interrupted (training is a stand-in here)."""
+    from helpers import experiment_script
+    from orgnav_jax.tables.provenance import read_provenance
+    from orgnav_jax.training.run_dir import seed_run_dir, write_config
+    script = experiment_script("convergence")
+    calls = []
+
+    def stand_in(cfg, seeds, resume, progress, until_converged):
+        calls.append((cfg, resume, until_converged))
+        for s in seeds:
+            run = tmp_path / "runs" / f"baseline_16envs-s{s}"
+            if not resume:
+                write_metrics(run, [0.5] * 3)
+                write_config(run, cfg)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return [{"stopped": "converged: the rule"}] * len(seeds)
+
+    monkeypatch.setattr(script.api, "train_seeds", stand_in)
+    assert script.run_row("baseline_16envs", tmp_path) == "stopped by the rule: converged: the rule"
+    cfg, resume, until = calls[0]
+    assert (cfg.num_envs, cfg.updates_per_chunk, cfg.scene_preset, cfg.total_env_steps,
+            cfg.eval_episodes_per_room_type, resume, until) == (16, 100, "calibrated",
+                                                                script.CAP, 250, False, True)
+    with pytest.raises(KeyboardInterrupt):
+        script.run_row("baseline_16envs", tmp_path)
+    assert calls[1][1] is True and calls[1][0].num_envs == 16     # resumed, saved config
+    for s in script.SEEDS:
+        did = [r["did"] for r in read_provenance(
+            tmp_path / "runs" / f"baseline_16envs-s{s}" / "provenance.json")]
+        assert did[0].startswith("trained in one program with seeds 100 101 until converged")
+        assert did[0].endswith("stopped by the rule: converged: the rule")
+        assert did[1].startswith("resumed") and did[1].endswith(
+            f"interrupted at about {3 * STEP:,} env steps")
+    assert not (tmp_path / seed_run_dir("runs/we", 100)).exists()
