@@ -31,6 +31,7 @@ from orgnav_jax.scenes.sceneset.episodes import (  # noqa: F401  (the data type,
 )
 from orgnav_jax.scenes.sceneset.fields import UNREACHABLE
 from orgnav_jax.scenes.sceneset.sceneset import SceneSet
+from orgnav_jax.scenes.synthetic.presets import episode_bounds
 
 FORMAT = "orgnav_jax.episodes/1"
 
@@ -39,7 +40,10 @@ def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYP
                     seed: int = 0, min_dist: int = 1, split: str = "") -> EpisodeSet:
     """Seeded episodes: for each room type present, `per_room_type` episodes, each a
     scene of that type (uniform), a start state (uniform over the scene's states) and a
-    valid target (uniform over those at distance >= min_dist from the start)."""
+    valid target (uniform over those at distance >= min_dist from the start and within
+    the (min, max) its preset's episode_distance sets for the room type: episode_bounds
+    of the set's info; (1, None) unless set; a start with no such target is drawn
+    again)."""
     if isinstance(per_room_type, bool) or not isinstance(per_room_type, (int, np.integer)) \
             or per_room_type < 1:
         raise ValueError(f"episodes per room type: {per_room_type!r}, expected an integer "
@@ -50,18 +54,21 @@ def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYP
     offsets = np.asarray(scenes.state_offset)
     targets = np.asarray(scenes.targets)
     dist = np.asarray(scenes.dist)                     # (T, C)
+    bounds = episode_bounds(scenes.info)
     out = {k: [] for k in ("scene", "start", "target", "optimal_len", "room_type")}
     for t in range(len(ROOM_TYPES)):
         of_type = np.flatnonzero(room_type == t)
         if of_type.size == 0:
             continue
-        _check_sampleable(scenes, of_type, ROOM_TYPES[t], min_dist, split)
+        lo, hi = bounds[ROOM_TYPES[t]]
+        lo, hi = max(lo, min_dist), UNREACHABLE - 1 if hi is None else hi
+        _check_sampleable(scenes, of_type, ROOM_TYPES[t], lo, hi, split)
         made = 0
         while made < per_room_type:
             n = int(rng.choice(of_type))
             s = int(rng.integers(counts[n]))
             d = dist[offsets[n] + s].astype(np.int64)
-            ok = np.flatnonzero(targets[n] & (d >= min_dist) & (d < UNREACHABLE))
+            ok = np.flatnonzero(targets[n] & (d >= lo) & (d <= hi))
             if ok.size == 0:
                 continue
             c = int(rng.choice(ok))
@@ -72,19 +79,34 @@ def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYP
     return EpisodeSet(**arrays, split=split, seed=seed)
 
 
-def _check_sampleable(scenes: SceneSet, of_type: np.ndarray, room: str, min_dist: int,
+def _check_sampleable(scenes: SceneSet, of_type: np.ndarray, room: str, lo: int, hi: int,
                       split: str) -> None:
     """ValueError unless some scene in `of_type` has a start state with a valid target at
-    distance >= min_dist (else sampling that room type would never end)."""
+    a distance in lo..hi (else sampling that room type would never end)."""
     for n in of_type:
         d = np.asarray(scenes.dist[scenes.state_slice(n)])
-        if ((d >= min_dist) & (d < UNREACHABLE) & np.asarray(scenes.targets[n])[None]).any():
+        if ((d >= lo) & (d <= hi) & np.asarray(scenes.targets[n])[None]).any():
             return
     names = ", ".join(scenes.scene_names[n] for n in of_type[:5])
+    within = f">= {lo}" if hi == UNREACHABLE - 1 else f"{lo}..{hi}"
     raise ValueError(f"no episode can be sampled for the {room} rooms"
                      f"{f' of split {split}' if split else ''} ({names}"
                      f"{', ...' if of_type.size > 5 else ''}): no valid target is reachable "
-                     f"from any state at distance >= {min_dist}")
+                     f"from any state at distance {within}")
+
+
+def length_stats(episodes: EpisodeSet) -> dict[str, dict]:
+    """Optimal path lengths (moves: the non-Done actions of a shortest path to a state
+    where the target is visible, `optimal_len`) of an episode set, per room type present
+    and over all: {"kitchen": {"episodes": n, "mean": float, "median": float}, ...,
+    "all": {...}}."""
+    length = np.asarray(episodes.optimal_len, np.float64)        # (E,)
+    room_type = np.asarray(episodes.room_type)                    # (E,)
+    groups = [(name, room_type == t) for t, name in enumerate(ROOM_TYPES)]
+    groups.append(("all", np.ones(len(length), bool)))
+    return {name: {"episodes": int(mask.sum()), "mean": float(length[mask].mean()),
+                   "median": float(np.median(length[mask]))}
+            for name, mask in groups if mask.any()}
 
 
 def save_episodes(path: str | os.PathLike, episodes: EpisodeSet, scenes: SceneSet) -> None:

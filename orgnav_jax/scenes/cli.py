@@ -4,7 +4,9 @@
     python -m orgnav_jax.scenes build --preset large --num-rooms 10 --out data/large10
     python -m orgnav_jax.scenes build --preset small --anchor-probability 0 --out data/p0
     python -m orgnav_jax.scenes build --preset small --perception confusion=0.2 --out data/c
+    python -m orgnav_jax.scenes build --preset calibrated --episode-distance bathroom=4 --out D
     python -m orgnav_jax.scenes info data/small
+    python -m orgnav_jax.scenes episodes calibrated   # evaluation episodes' path lengths
     python -m orgnav_jax.scenes info small            # a preset's cached set (built if new)
     python -m orgnav_jax.scenes show 201 [--seed 0] [--room-sizes thor]  # ASCII top view
     python -m orgnav_jax.scenes import --offline-dir DIR --out data/thor   # authors' data
@@ -23,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from orgnav_jax.constants import DEFAULT_SCENE_PRESET, SPLITS
-from orgnav_jax.episodes import sample_episodes
+from orgnav_jax.constants import (
+    DEFAULT_SCENE_PRESET, EPISODES_PER_ROOM_TYPE, ROOM_TYPES, SPLITS)
+from orgnav_jax.episodes import length_stats, sample_episodes
 from orgnav_jax.safe_write import check_output_dir
 from orgnav_jax.scenes.offline.episodes import write_offline_episodes
 from orgnav_jax.scenes.offline.exporter import check_export_dir, export_offline
@@ -38,7 +41,8 @@ from orgnav_jax.scenes.synthetic.builder import build
 from orgnav_jax.scenes.synthetic.cache import cache_path, load_or_build
 from orgnav_jax.scenes.synthetic.layout import ROOM_SIZE_PROFILES, generate_room, render_ascii
 from orgnav_jax.scenes.synthetic.perception import parse_knobs
-from orgnav_jax.scenes.synthetic.presets import SCENE_PRESETS, get_preset
+from orgnav_jax.scenes.synthetic.presets import (
+    SCENE_PRESETS, get_preset, parse_episode_distance)
 from orgnav_jax.scenes.synthetic.raw import build_raw_to
 
 
@@ -66,12 +70,25 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("--perception", nargs="+", metavar="NAME=VALUE",
                    help="perception knobs over the preset's (docs/calibrated.md), e.g. "
                         "global_labels=none global_noise=0.5 confusion=0.2")
+    b.add_argument("--episode-distance", nargs="+", metavar="ROOM=MIN[:MAX]",
+                   help="bounds on the optimal path length (moves) of the evaluation "
+                        "episodes per room type (docs/calibrated.md), e.g. living_room=6 "
+                        "kitchen=1:18; default: any target at least one move away")
     b.add_argument("--json", action="store_true", help="also print the summary as JSON")
     i = sub.add_parser("info", help="summarize a saved benchmark")
     i.add_argument("path", help="a SceneSet directory, or a preset name for its cached set "
                    "($ORGNAV_CACHE or ~/.cache/orgnav_jax/scenes-PRESET-seedSEED-vFORMAT)")
     i.add_argument("--seed", type=int, default=0, help="with a preset name: its scene seed")
     i.add_argument("--json", action="store_true")
+    ep = sub.add_parser("episodes", help="optimal path lengths of a set's seeded evaluation "
+                        "episodes, per split and room type")
+    ep.add_argument("path", help="a SceneSet directory, or a preset name for its cached set")
+    ep.add_argument("--seed", type=int, default=0, help="with a preset name: its scene seed")
+    ep.add_argument("--splits", nargs="+", choices=SPLITS, default=["val", "test"])
+    ep.add_argument("--episodes-per-room-type", type=int, default=EPISODES_PER_ROOM_TYPE)
+    ep.add_argument("--episode-seed", type=int, default=0,
+                    help="the episode sampler's seed (0: the evaluation's default)")
+    ep.add_argument("--json", action="store_true")
     s = sub.add_parser("show", help="print the ASCII top view of one generated room")
     s.add_argument("floorplan", type=int, help="AI2-THOR number, e.g. 1, 201, 301, 401")
     s.add_argument("--seed", type=int, default=0)
@@ -109,6 +126,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.perception:
             preset = get_preset(preset, perception=dataclasses.replace(
                 preset.perception, **parse_knobs(args.perception)))
+        if args.episode_distance:
+            bounds = dict(preset.episode_distance or ())
+            bounds.update(parse_episode_distance(args.episode_distance))
+            preset = get_preset(preset, episode_distance=bounds)
         t0 = time.perf_counter()
         if preset.raw:  # decoded features streamed to disk (synthetic/raw.py)
             scenes = build_raw_to(preset, args.seed, args.out, progress=True)
@@ -120,15 +141,10 @@ def main(argv: list[str] | None = None) -> int:
         summary.update(build_s=build_s, disk_mb=disk_size(args.out) / 2**20, out=args.out)
     elif args.command == "convert":
         summary = _convert(args)
+    elif args.command == "episodes":
+        return _episodes(args)
     elif args.command == "info":
-        path = args.path
-        if not Path(path).exists() and path in SCENE_PRESETS:
-            load_or_build(path, args.seed)           # built on first use, as training does
-            path = str(cache_path(path, args.seed))
-            print(f"preset {args.path}, seed {args.seed}: {path}")
-        elif not Path(path).exists():
-            raise FileNotFoundError(f"no SceneSet at {path}: expected a SceneSet directory "
-                                    f"or a preset name ({', '.join(sorted(SCENE_PRESETS))})")
+        path = _set_path(args.path, args.seed)
         summary = summarize(load(path, mmap=True))
         summary.update(disk_mb=disk_size(path) / 2**20)
     else:
@@ -139,6 +155,47 @@ def main(argv: list[str] | None = None) -> int:
     print(format_summary(summary))
     if args.json:
         print(json.dumps(summary))
+    return 0
+
+
+def _set_path(path: str, seed: int) -> str:
+    """A SceneSet directory, or a preset name's cached set (built on first use, as
+    training does); FileNotFoundError for anything else."""
+    if not Path(path).exists() and path in SCENE_PRESETS:
+        load_or_build(path, seed)
+        print(f"preset {path}, seed {seed}: {cache_path(path, seed)}")
+        return str(cache_path(path, seed))
+    if not Path(path).exists():
+        raise FileNotFoundError(f"no SceneSet at {path}: expected a SceneSet directory "
+                                f"or a preset name ({', '.join(sorted(SCENE_PRESETS))})")
+    return path
+
+
+def _episodes(args) -> int:
+    """Print the optimal path lengths (mean / median, moves) of the seeded evaluation
+    episodes of each split, per room type (episodes.length_stats)."""
+    if args.episodes_per_room_type < 1:
+        raise ValueError(f"--episodes-per-room-type {args.episodes_per_room_type}: expected "
+                         "an integer >= 1")
+    if args.episode_seed < 0:
+        raise ValueError(f"--episode-seed {args.episode_seed}: expected an integer >= 0")
+    scenes = load(_set_path(args.path, args.seed), mmap=True)
+    stats = {}
+    for split in args.splits:
+        view = scenes.split_view(split)
+        if view.num_scenes:
+            stats[split] = length_stats(sample_episodes(
+                view, args.episodes_per_room_type, seed=args.episode_seed, split=split))
+    columns = list(ROOM_TYPES) + ["all"]
+    print(f"optimal path length (moves), mean / median of {args.episodes_per_room_type} "
+          f"episodes per room type, episode seed {args.episode_seed}")
+    print(f"{'split':<6}" + "".join(f"{c:>14}" for c in columns))
+    for split, per in stats.items():
+        cells = (f"{per[c]['mean']:.2f} / {per[c]['median']:g}" if c in per else "-"
+                 for c in columns)
+        print(f"{split:<6}" + "".join(f"{cell:>14}" for cell in cells))
+    if args.json:
+        print(json.dumps(stats))
     return 0
 
 

@@ -9,7 +9,8 @@ import numpy as np
 from orgnav_jax.constants import CATEGORIES, ROOM_TYPES, SPLITS, TARGETS, category_index
 from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
 from orgnav_jax.scenes.synthetic.perception import Perception
-from orgnav_jax.scenes.synthetic.presets import SCENE_PRESETS
+from orgnav_jax.scenes.synthetic.presets import (
+    DEFAULT_EPISODE_DISTANCE, SCENE_PRESETS, episode_bounds)
 from orgnav_jax.scenes.sceneset.fields import PER_STATE_FIELDS, UNREACHABLE
 from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 
@@ -47,6 +48,8 @@ def summarize(scenes: SceneSet) -> dict:
                                           if scenes.meta("preset") in SCENE_PRESETS
                                           else None),
         "perception": perception_of(scenes),
+        "episode_distance": {room: list(b) for room, b in episode_bounds(scenes.info).items()
+                             if b != DEFAULT_EPISODE_DISTANCE},
         "num_scenes": scenes.num_scenes, "states_total": scenes.num_states,
         "rooms": rooms,
         "states": {"min": int(n_states.min()), "median": float(np.median(n_states)),
@@ -94,6 +97,10 @@ def format_summary(s: dict) -> str:
                                        + " (other knobs at their defaults)" if changed else
                                        "every knob at its default (small's clean "
                                        "perception)"))
+    if s.get("episode_distance"):
+        lines.append("evaluation episodes' optimal path length (moves) bounded: " + ", ".join(
+            f"{room} {lo}..{'' if hi is None else hi}"
+            for room, (lo, hi) in s["episode_distance"].items()))
     lines.append(f"{'rooms':<8}" + "".join(f"{t:>13}" for t in ROOM_TYPES))
     for split, per in s["rooms"].items():
         lines.append(f"{split:<8}" + "".join(f"{per[t]:>13}" for t in ROOM_TYPES))

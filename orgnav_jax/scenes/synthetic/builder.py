@@ -16,7 +16,7 @@ from orgnav_jax.scenes.synthetic import detector, geometry, global_view
 from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
 from orgnav_jax.scenes.synthetic.layout import Room, generate_room
 from orgnav_jax.scenes.synthetic.perception import Perception, degrade_detections, degrade_global
-from orgnav_jax.scenes.synthetic.presets import ScenePreset, get_preset
+from orgnav_jax.scenes.synthetic.presets import ScenePreset, episode_distance_info, get_preset
 
 
 @dataclasses.dataclass
@@ -135,8 +135,9 @@ def build(preset: str | ScenePreset = DEFAULT_SCENE_PRESET, seed: int = 0, *,
 def preset_info(preset: ScenePreset, seed: int) -> tuple:
     """The info pairs a set built from (preset, seed) records: the format, the preset's
     name, the seed, rooms per type, and every field of its definition that differs from
-    the defaults (room sizes and count, anchor probability, perception knobs); the cache
-    (cache.py) compares a cached set's info with these on every load."""
+    the defaults (room sizes and count, anchor probability, perception knobs, episode
+    distances); the cache (cache.py) compares a cached set's info with these on every
+    load."""
     p = preset
     info = FORMAT_INFO + (("preset", p.name), ("seed", int(seed)),
                           ("rooms_per_type", tuple(p.rooms_per_type)))
@@ -145,4 +146,4 @@ def preset_info(preset: ScenePreset, seed: int) -> tuple:
     if p.anchor_probability != ANCHOR_PROBABILITY:     # (default sets keep their info)
         info += (("anchor_probability", float(p.anchor_probability)),)
     info += tuple(("perception." + k, v) for k, v in p.perception.changed().items())
-    return info
+    return info + episode_distance_info(p)

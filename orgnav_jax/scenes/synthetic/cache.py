@@ -5,12 +5,12 @@ then load; processes building the same set at once keep the first one saved. The
 directory name carries the format version, so a new version rebuilds automatically and
 code of an older version (another checkout sharing the cache) keeps reading its own copy.
 Every load checks the cached set against the preset's whole definition (its info: the
-preset, seed, rooms per type, room sizes, anchor probability, every perception knob; the
-feature widths; the rooms, by FloorPlan number, type and split): a set of another
-definition (an earlier one of the preset, another --perception, a slot left by a test or
-an interrupted build) or a damaged one (meta.json gone, values out of range) is rebuilt
-in place with a note; an entry holding files this program does not write is refused,
-naming $ORGNAV_CACHE, before anything is built.
+preset, seed, rooms per type, room sizes, anchor probability, every perception knob, the
+episode distances; the feature widths; the rooms, by FloorPlan number, type and split):
+a set of another definition (an earlier one of the preset, another --perception, a slot
+left by a test or an interrupted build) or a damaged one (meta.json gone, values out of
+range) is rebuilt in place with a note; an entry holding files this program does not
+write is refused, naming $ORGNAV_CACHE, before anything is built.
 
 load_scenes / device_split: within one process, the last SceneSet loaded (memory-mapped)
 and its split views put on the device are kept, so that training, its val evaluation and
@@ -32,7 +32,8 @@ from orgnav_jax.scenes.synthetic.builder import build, preset_info
 from orgnav_jax.scenes.synthetic.catalog import ANCHOR_PROBABILITY
 from orgnav_jax.scenes.synthetic.perception import Perception
 from orgnav_jax.scenes.sceneset.fields import FORMAT_VERSION
-from orgnav_jax.scenes.synthetic.presets import ScenePreset, get_preset
+from orgnav_jax.scenes.synthetic.presets import (
+    DEFAULT_EPISODE_DISTANCE, EPISODE_DISTANCE_KEY, ScenePreset, get_preset)
 from orgnav_jax.scenes.sceneset.sceneset import SceneSet
 from orgnav_jax.scenes.sceneset.storage import (
     META_FILE, foreign_files, load, remove_own_set, save)
@@ -139,14 +140,17 @@ def _default(key: str) -> str:
         return f"{getattr(Perception(), name)!r} (the default, not recorded)"
     if key == "anchor_probability":
         return f"{ANCHOR_PROBABILITY!r} (the default, not recorded)"
+    if key.startswith(EPISODE_DISTANCE_KEY):
+        return f"{DEFAULT_EPISODE_DISTANCE!r} (the default, not recorded)"
     return "none (not recorded by this preset)"
 
 
 def definition_mismatch(scenes: SceneSet, preset: ScenePreset, seed: int) -> list[str]:
     """What differs between `scenes` and the set build(preset, seed) makes, compared
     without building it: the info (preset, seed, rooms per type, room sizes and count,
-    anchor probability, every perception knob; builder.preset_info), the decoded
-    feature widths and the rooms (FloorPlan number, room type, split, in order) ->
+    anchor probability, every perception knob, episode distances; builder.preset_info),
+    the decoded feature widths and the rooms (FloorPlan number, room type, split, in
+    order) ->
     ["perception.confusion 0.2, expected 0.15", ...], [] when none."""
     def plain(value):
         return tuple(value) if isinstance(value, list) else value

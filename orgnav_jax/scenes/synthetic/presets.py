@@ -17,6 +17,10 @@ from orgnav_jax.scenes.synthetic.perception import Perception
 # A generated set holds (G, 49 x G)-ish projections and every model layer grows with the
 # width; --global-dim 1e9 asked for 89 GB before this bound.
 MAX_FEATURE_DIM = 4096
+# The (min, max) optimal path length of evaluation episodes when a preset bounds none:
+# any valid target at least one move away (ScenePreset.episode_distance).
+DEFAULT_EPISODE_DISTANCE = (1, None)
+EPISODE_DISTANCE_KEY = "episode_distance."     # + room type: its key in a set's info
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,7 +37,11 @@ class ScenePreset:
     anchor_probability: how often an object with anchors is placed by one (the
       co-occurrence knob; catalog.ANCHOR_PROBABILITY by default);
     perception: the global view's and the detector's knobs (perception.py; the
-      defaults are the clean perception of `small`)."""
+      defaults are the clean perception of `small`);
+    episode_distance: {room type: (min, max)} bounds on the optimal path length (moves)
+      of the seeded evaluation episodes (episodes.sample_episodes; max None: no bound);
+      room types not named keep (1, None), as does every type by default (None). Stored
+      as ((room type, (min, max)), ...) for the named types, in ROOM_TYPES order."""
     name: str
     rooms_per_type: tuple[int, int, int] = (20, 5, 5)
     global_dim: int = 32
@@ -43,6 +51,7 @@ class ScenePreset:
     num_rooms: int | None = None
     anchor_probability: float = ANCHOR_PROBABILITY
     perception: Perception = Perception()
+    episode_distance: tuple | None = None
 
     def __post_init__(self):
         if not isinstance(self.perception, Perception):
@@ -82,6 +91,8 @@ class ScenePreset:
         if self.room_sizes not in ROOM_SIZE_PROFILES:
             raise ValueError(f"preset {self.name!r}: room_sizes {self.room_sizes!r}, "
                              f"expected one of {sorted(ROOM_SIZE_PROFILES)}")
+        object.__setattr__(self, "episode_distance",
+                           _episode_distance(self.name, self.episode_distance))
         total = len(ROOM_TYPES) * sum(self.rooms_per_type)
         if self.num_rooms is not None and not 1 <= self.num_rooms <= total:
             raise ValueError(f"preset {self.name!r}: num_rooms {self.num_rooms}, expected "
@@ -114,6 +125,71 @@ class ScenePreset:
 def _integer(value) -> bool:
     """An integer of any kind (numpy's too), not a bool."""
     return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+
+
+def _episode_distance(name: str, value) -> tuple | None:
+    """ScenePreset.episode_distance ({room type: (min, max)} or its stored form) ->
+    ((room type, (min, max)), ...) for the types not at DEFAULT_EPISODE_DISTANCE, None
+    when none is; one-line ValueError naming the field otherwise."""
+    if value is None:
+        return None
+    field = f"preset {name!r}: episode_distance"
+    try:
+        bounds = dict(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{field} {value!r}, expected {{room type: (min, max)}}") from None
+    out = []
+    for room in ROOM_TYPES:
+        if room not in bounds:
+            continue
+        pair = bounds.pop(room)
+        if not isinstance(pair, (tuple, list)) or len(pair) != 2:
+            raise ValueError(f"{field}[{room!r}] {pair!r}, expected (min, max)")
+        lo, hi = pair
+        if not _integer(lo) or lo < 1 or hi is not None and (not _integer(hi) or hi < lo):
+            raise ValueError(f"{field}[{room!r}] {tuple(pair)!r}, expected integers 1 <= "
+                             "min <= max (moves; max None: no bound)")
+        pair = (int(lo), None if hi is None else int(hi))
+        if pair != DEFAULT_EPISODE_DISTANCE:
+            out.append((room, pair))
+    if bounds:
+        raise ValueError(f"{field}: unknown room type(s) {sorted(map(str, bounds))}, "
+                         f"expected some of {list(ROOM_TYPES)}")
+    return tuple(out) or None
+
+
+def episode_distance_info(preset: ScenePreset) -> tuple:
+    """The info pairs recording a preset's episode_distance: (("episode_distance.ROOM",
+    (min, max)), ...) for the bounded room types; () by default (info unchanged)."""
+    return tuple((EPISODE_DISTANCE_KEY + room, pair)
+                 for room, pair in preset.episode_distance or ())
+
+
+def parse_episode_distance(items: list[str]) -> dict:
+    """["living_room=6", "kitchen=1:18", ...] -> {room type: (min, max or None)}
+    (--episode-distance); ScenePreset checks the ranges, a one-line ValueError names a
+    malformed item."""
+    out = {}
+    for item in items:
+        room, _, bounds = item.partition("=")
+        lo, _, hi = bounds.partition(":")
+        try:
+            if room not in ROOM_TYPES or room in out:
+                raise ValueError(room)
+            out[room] = (int(lo), int(hi) if hi else None)
+        except ValueError:
+            raise ValueError(f"episode_distance {item!r}: expected ROOM=MIN[:MAX] with ROOM "
+                             f"one of {list(ROOM_TYPES)}, each room once") from None
+    return out
+
+
+def episode_bounds(info: tuple) -> dict[str, tuple[int, int | None]]:
+    """A set's info -> {room type: (min, max)} for every room type: what
+    episode_distance_info recorded, DEFAULT_EPISODE_DISTANCE where nothing is (the other
+    presets, imported sets)."""
+    info = dict(info)
+    return {room: tuple(info.get(EPISODE_DISTANCE_KEY + room, DEFAULT_EPISODE_DISTANCE))
+            for room in ROOM_TYPES}
 
 
 def _round_robin(lists: list[list]) -> list:
