@@ -6,6 +6,8 @@
     python experiments/calibration.py table                            # writes calibration.md
     python experiments/calibration.py --check                          # recompute; exit 1 if
                                                                        # calibration.md differs
+    python experiments/calibration.py --budget 20000000 run --setting g4d1 --row we
+                                             # at another budget: its own folder and page
 
 A setting is a set of perception knobs (scenes/synthetic/perception.py) over the `small`
 preset: the same rooms, splits, categories and episodes, only the global view and the
@@ -16,7 +18,10 @@ the row at the table's budget (5 M env steps, dropout 0, seed 100: no table uses
 OUT/runs/<row>-<setting>, and evaluates its best-on-val checkpoint on the whole val split
 (250 episodes per room type) into val_results.json; the test split is never touched.
 Random does not depend on perception: one evaluation on val (seed 100) serves every
-setting.
+setting. `--budget N` (env steps) calibrates at another budget, e.g. the budget at which
+the rows have converged (docs/results.md, "When a row has converged"): its runs and page
+go to OUT/at_N (runs/<row>-<setting>, calibration.md), Random is the one evaluation
+above; the default, 5 M, is OUT itself.
 
 The table (calibration.md) has, per setting, val success / SPL of Random, WE and the
 Baseline beside the targets (AI2-THOR's Table 1 values: Random 8 +- 3, WE 33 +- 5, Baseline
@@ -57,11 +62,29 @@ def build_setting(setting: str) -> Path:
     return path
 
 
-def run(setting: str, row: str) -> Path:
-    """Train `row` on the setting (resumed if started) and evaluate it on val."""
-    run_dir = OUT / "runs" / f"{row}-{setting}"
+def positive_int(text: str) -> int:
+    """--budget: a whole number of env steps >= 1 (argparse: one-line error, exit 2)."""
+    try:
+        value = int(text.replace("_", ""))
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a whole number of env steps "
+                                         ">= 1, e.g. 20000000")
+    return value
+
+
+def budget_dir(budget: int) -> Path:
+    """Where the calibration at `budget` env steps keeps its runs and page."""
+    return OUT if budget == BUDGET else OUT / f"at_{budget}"
+
+
+def run(setting: str, row: str, budget: int = BUDGET) -> Path:
+    """Train `row` on the setting for `budget` env steps (resumed if started) and evaluate
+    it on val."""
+    run_dir = budget_dir(budget) / "runs" / f"{row}-{setting}"
     cfg = get_config(row, scenes_dir=str(build_setting(setting)), seed=SEED,
-                     total_env_steps=BUDGET, dropout=0.0, run_dir=str(run_dir))
+                     total_env_steps=budget, dropout=0.0, run_dir=str(run_dir))
     work_recorded(run_dir, lambda resumed: api.train(cfg, resume=resumed),
                   lambda resumed: "resumed and finished" if resumed else "trained")
     api.evaluate_run(run_dir, "val", out=run_dir / "val_results.json", progress=True)
@@ -83,6 +106,9 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--check", action="store_true",
                     help="recompute calibration.md; exit 1 if it differs")
+    ap.add_argument("--budget", type=positive_int, default=BUDGET, metavar="ENV_STEPS",
+                    help=f"the runs' budget (default {BUDGET:,}: the tables'); another "
+                         "budget has its own folder, OUT/at_ENV_STEPS")
     sub = ap.add_subparsers(dest="command")
     r = sub.add_parser("run", help="train and val-evaluate one row on one setting")
     r.add_argument("--setting", required=True, choices=sorted(SETTINGS))
@@ -90,17 +116,19 @@ def main(argv: list[str] | None = None) -> int:
     sub.add_parser("random", help="evaluate the random policy on val")
     sub.add_parser("table", help="write calibration.md")
     args = ap.parse_args(argv)
+    out = budget_dir(args.budget)
+    page = lambda: table_text(out, args.budget, OUT / "runs" / "random")
     if args.check:
-        return pages.regenerate({OUT / "calibration.md": table_text(OUT)}, check=True)
+        return pages.regenerate({out / "calibration.md": page()}, check=True)
     if args.command is None:
         ap.error("give a command (run, random, table) or --check")
     process_provenance()                   # at start: the code this process loaded
     if args.command == "run":
-        run(args.setting, args.row)
+        run(args.setting, args.row, args.budget)
     elif args.command == "random":
         run_random()
-    text = table_text(OUT)
-    pages.write_pages({OUT / "calibration.md": text})
+    text = page()
+    pages.write_pages({out / "calibration.md": text})
     print(text)
     return 0
 

@@ -740,3 +740,27 @@ def test_calibration_check_reads_every_file_through_its_reader(calibration_copy,
         f.write('{"kind": "val", "env_st')
     assert cli_error(calibration.main, ["--check"]).endswith(
         f"{metrics} line {n}: not valid JSON (expected one JSON object a line)")
+
+
+def test_calibration_at_another_budget_has_its_own_folder_and_page(calibration_copy, capsys):
+    """`calibration.py --budget N`: runs and page in OUT/at_N, the title names N, no
+    setting is marked chosen there, Random is the one val evaluation in OUT/runs; a bad
+    budget is a one-line error (exit 2) that writes nothing."""
+    calibration, out = calibration_copy
+    at = out / "at_20000000"
+    for run in ("we-g4", "baseline-g4d1"):
+        shutil.copytree(out / "runs" / run, at / "runs" / run)
+    assert calibration.budget_dir(20_000_000) == at and calibration.budget_dir(5_000_000) == out
+    assert calibration.main(["--budget", "20000000", "table"]) == 0
+    page = (at / "calibration.md").read_text()
+    assert page.startswith("# Perception calibration (val split, seed 100, 20 M env steps)")
+    assert "| g4d1 |" in page and "(chosen)" not in page and "| g3d1" not in page
+    assert "| 3.6 / 0.013 |" in page                   # Random, from OUT/runs/random
+    assert calibration.main(["--budget", "20000000", "--check"]) == 0
+    assert calibration.main(["--check"]) == 0          # the 5 M page as it was
+    before = sorted(p.name for p in out.iterdir())
+    with pytest.raises(SystemExit) as exit_:
+        calibration.main(["--budget", "-5", "table"])
+    assert exit_.value.code == 2 and capsys.readouterr().err.splitlines()[-1].endswith(
+        "argument --budget: '-5': expected a whole number of env steps >= 1, e.g. 20000000")
+    assert sorted(p.name for p in out.iterdir()) == before

@@ -99,12 +99,15 @@ def _cell(overall: dict | None, row: str) -> str:
     return f"{s:.1f} / {spl:.3f}{mark}"
 
 
-def table_text(out: Path) -> str:
-    """calibration.md of the calibration runs in OUT/runs."""
+def table_text(out: Path, budget: int = BUDGET, random_dir: Path | None = None) -> str:
+    """calibration.md of the calibration runs in OUT/runs, trained for `budget` env steps
+    (the chosen setting is marked on the tables' budget's page only); Random from
+    random_dir (OUT/runs/random by default: it does not depend on the budget)."""
     runs = out / "runs"
-    random = val_summary(runs / "random")
+    random = val_summary(random_dir or runs / "random")
+    chosen = CHOSEN if budget == BUDGET else None
     lines = [
-        "# Perception calibration (val split, seed 100, 5 M env steps)",
+        f"# Perception calibration (val split, seed 100, {budget / 1e6:g} M env steps)",
         "",
         "Written by `python experiments/calibration.py table` from the runs' files "
         "(`--check` recomputes it). Val success (%) / SPL of the best-on-val checkpoint "
@@ -132,7 +135,7 @@ def table_text(out: Path) -> str:
         spl = None if base is None else base["release_spl"]
         text = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
                          for k, v in knobs.items())
-        lines.append(f"| {name}{' (chosen)' if name == CHOSEN else ''} | {text} | {_cell(random, 'random')} | {_cell(we, 'we')} | "
+        lines.append(f"| {name}{' (chosen)' if name == chosen else ''} | {text} | {_cell(random, 'random')} | {_cell(we, 'we')} | "
                      f"{_cell(base, 'baseline')} | {'-' if spl is None else f'{spl:.3f}'} | "
                      f"{'-' if gain is None else f'{gain:+.1f}'} |")
     return "\n".join(lines) + "\n"
