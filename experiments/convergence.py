@@ -53,6 +53,8 @@ def row_config(row: str, out: Path = OUT):
     """The campaign row's TrainConfig and whether its runs exist (then it resumes them
     with their saved config, the cap as budget)."""
     base = out / "runs" / row
+    if base.is_relative_to(Path.cwd()):        # config.json names no one machine's path
+        base = base.relative_to(Path.cwd())
     if is_run_dir(seed_run_dir(str(base), SEEDS[0])):
         return api.resume_config(base, SEEDS, total_env_steps=CAP), True
     preset, setting = ROWS[row]

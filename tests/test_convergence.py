@@ -306,3 +306,20 @@ def test_the_campaign_run_starts_resumes_and_records_why_it_stopped(tmp_path, mo
         assert did[1].startswith("resumed") and did[1].endswith(
             f"interrupted at about {3 * STEP:,} env steps")
     assert not (tmp_path / seed_run_dir("runs/we", 100)).exists()
+
+
+def test_the_tables_budget_is_the_latest_said_converged_rounded_up_to_a_million():
+    """table_budget: the largest env step where the rule first said converged among the
+    Baseline, WE and ORG + IL, rounded up to whole millions; None while one has not."""
+    from orgnav_jax.tables.convergence_page import table_budget
+    flat = curve(np.full(60, 0.5), np.full(60, 0.5))
+    later = curve(np.r_[np.linspace(0.1, 0.5, 30), np.full(70, 0.5)],
+                  np.r_[np.linspace(0.1, 0.5, 30), np.full(70, 0.5)])
+    said = [cv.converged_at(c).env_steps for c in (flat, later)]
+    assert said[0] < said[1]
+    budget, text = table_budget({"baseline": flat, "we": later, "org_il": flat})
+    assert budget == -(-said[1] // 1_000_000) * 1_000_000 and budget > said[1]
+    assert text.startswith(f"**{budget:,} env steps**") and f"we {said[1]:,}" in text
+    budget, text = table_budget({"baseline": flat, "we": curve(np.linspace(0.1, 0.6, 60),
+                                                              np.linspace(0.1, 0.6, 60))})
+    assert budget is None and text.startswith("Not fixed yet: we, org_il not converged")

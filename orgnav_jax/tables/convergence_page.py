@@ -26,6 +26,9 @@ from orgnav_jax.training.config import load_config
 
 SEED_SUFFIX = re.compile(r"-s\d+$")
 TABLE_5M_ROWS = ("baseline", "org", "il", "org_il", "we", "dsp", "dsavn", "savn")
+# the rows whose convergence sets the table's budget (docs/results.md, issue 65 step 2)
+BUDGET_ROWS = ("baseline", "we", "org_il")
+BUDGET_ROUND = 1_000_000                 # the table's budget: rounded up to whole millions
 SPANS_M = (0, 1, 2, 3, 4, 5, 6, 8, 10, 12, 14, 16, 18, 20, 25, 30, 40, 50, 60)
 
 
@@ -157,6 +160,23 @@ def has_val(run: Path) -> bool:
         '"kind": "val"' in (run / "metrics.jsonl").read_text()
 
 
+def table_budget(curves: dict[str, SeedMeanCurve]) -> tuple[int | None, str]:
+    """The table's budget (docs/results.md): the largest env step at which the rule first
+    said converged among BUDGET_ROWS, rounded up to whole BUDGET_ROUND -> (it, one
+    sentence), or (None, which rows it waits for)."""
+    said = {row: converged_at(curves[row]) if row in curves and not applicable(curves[row])
+            else None for row in BUDGET_ROWS}
+    waiting = [row for row, v in said.items() if v is None]
+    if waiting:
+        return None, (f"Not fixed yet: {', '.join(waiting)} not converged by the rule "
+                      f"(the budget waits for {', '.join(BUDGET_ROWS)}).")
+    last = max(v.env_steps for v in said.values())
+    budget = -(-last // BUDGET_ROUND) * BUDGET_ROUND
+    return budget, (f"**{budget:,} env steps**: the largest env step where the rule said "
+                    f"converged ({', '.join(f'{r} {v.env_steps:,}' for r, v in said.items())}"
+                    f"), rounded up to whole millions.")
+
+
 def campaign_rows(out: Path) -> dict[str, list[Path]]:
     """The campaign's rows whose runs have logged a val evaluation."""
     runs = sorted(p for p in (out / "runs").glob("*-s*") if has_val(p))
@@ -174,6 +194,7 @@ def report(out: Path, table_5m: Path, root: Path) -> str:
     if rows:
         curves = row_curves(rows)
         text += ["## The rule on each row", "", *campaign_table(rows, curves), "",
+                 f"The table's budget: {table_budget(curves)[1]}", "",
                  "## Val success by span of env steps (seed mean, points)", "",
                  *span_table(curves, SPANS_M), ""]
     text += ["## The 5 M calibrated table's rows, by tenth of their budget", "",
