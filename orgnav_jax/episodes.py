@@ -31,7 +31,7 @@ from orgnav_jax.scenes.sceneset.episodes import (  # noqa: F401  (the data type,
 )
 from orgnav_jax.scenes.sceneset.fields import UNREACHABLE
 from orgnav_jax.scenes.sceneset.sceneset import SceneSet
-from orgnav_jax.scenes.synthetic.presets import episode_bounds
+from orgnav_jax.scenes.synthetic.presets import DEFAULT_EPISODE_DISTANCE, episode_bounds
 
 FORMAT = "orgnav_jax.episodes/1"
 
@@ -40,10 +40,10 @@ def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYP
                     seed: int = 0, min_dist: int = 1, split: str = "") -> EpisodeSet:
     """Seeded episodes: for each room type present, `per_room_type` episodes, each a
     scene of that type (uniform), a start state (uniform over the scene's states) and a
-    valid target (uniform over those at distance >= min_dist from the start and within
-    the (min, max) its preset's episode_distance sets for the room type: episode_bounds
-    of the set's info; (1, None) unless set; a start with no such target is drawn
-    again)."""
+    valid target (uniform over those whose distance from the start lies within the (min,
+    max) its preset's episode_distance sets for the room type, episode_bounds of the set's
+    info; where it sets none, at distance >= min_dist (0: the target may be in view at
+    the start); a start with no such target is drawn again)."""
     if isinstance(per_room_type, bool) or not isinstance(per_room_type, (int, np.integer)) \
             or per_room_type < 1:
         raise ValueError(f"episodes per room type: {per_room_type!r}, expected an integer "
@@ -61,7 +61,9 @@ def sample_episodes(scenes: SceneSet, per_room_type: int = EPISODES_PER_ROOM_TYP
         if of_type.size == 0:
             continue
         lo, hi = bounds[ROOM_TYPES[t]]
-        lo, hi = max(lo, min_dist), UNREACHABLE - 1 if hi is None else hi
+        if (lo, hi) == DEFAULT_EPISODE_DISTANCE:     # the preset bounds none: min_dist
+            lo = min_dist                           # (0: the target may be in view)
+        hi = UNREACHABLE - 1 if hi is None else hi
         _check_sampleable(scenes, of_type, ROOM_TYPES[t], lo, hi, split)
         made = 0
         while made < per_room_type:

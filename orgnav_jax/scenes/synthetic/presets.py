@@ -146,9 +146,10 @@ def _episode_distance(name: str, value) -> tuple | None:
         if not isinstance(pair, (tuple, list)) or len(pair) != 2:
             raise ValueError(f"{field}[{room!r}] {pair!r}, expected (min, max)")
         lo, hi = pair
-        if not _integer(lo) or lo < 1 or hi is not None and (not _integer(hi) or hi < lo):
-            raise ValueError(f"{field}[{room!r}] {tuple(pair)!r}, expected integers 1 <= "
-                             "min <= max (moves; max None: no bound)")
+        if not _integer(lo) or lo < 0 or hi is not None and (not _integer(hi) or hi < lo):
+            raise ValueError(f"{field}[{room!r}] {tuple(pair)!r}, expected integers 0 <= "
+                             "min <= max (moves, 0: the target in view at the start; max "
+                             "None: no bound)")
         pair = (int(lo), None if hi is None else int(hi))
         if pair != DEFAULT_EPISODE_DISTANCE:
             out.append((room, pair))
