@@ -161,6 +161,8 @@ def plot_curves(run_dirs: Iterable[str | Path] | Mapping[str, Sequence[str | Pat
             ax.fill_between(a["env_steps"], scale * lo, scale * hi, color=color, alpha=0.2,
                             linewidth=0)
         ax.set_xlabel("env steps")
+        if max(d[m]["env_steps"].max() for d in data.values()) >= 1e6:   # "5 M", not 1e7
+            ax.xaxis.set_major_formatter(lambda x, _: f"{x / 1e6:g} M" if x else "0")
         name = LABELS.get(m, m)
         ax.set_ylabel(f"val {name}" + (" (%)" if m in PERCENT else ""))
         seeds = {d[m]["seeds"] for d in data.values()}
