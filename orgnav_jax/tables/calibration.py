@@ -41,6 +41,9 @@ SETTINGS: dict[str, dict] = {
     "g1": _G1, "g2": _G2, "g3": _G3,
     "g3d1": {**_G3, **_D1}, "g3d2": {**_G3, **_D2}, "g3d3": {**_G3, **_D3},
     "g4": _G4, "g4d3": {**_G4, **_D3}, "g4d1": {**_G4, **_D1}, "g4d5": {**_G4, **_D5},
+    # at the converged budget (22 M env steps, issue 65 step 3): WE on g1 (-9.7 on g3 at
+    # 5 M; it must lose about 10 of its converged 43.8), the Baseline on g1 with d1
+    "g1d1": {**_G1, **_D1},
 }
 
 
