@@ -651,6 +651,9 @@ def test_calibration_table_agrees_with_its_runs():
     calibration = experiment_script("calibration")
     assert calibration.main(["--check"]) == 0
     assert "(chosen)" in (calibration.OUT / "calibration.md").read_text()
+    for at in sorted(calibration.OUT.glob("at_*")):         # the calibrations at a budget
+        if (at / "calibration.md").exists():
+            assert calibration.main(["--budget", at.name[3:], "--check"]) == 0, at
 
 
 # round five (issue 67): tables fed the wrong files --------------------------------------
