@@ -43,6 +43,7 @@ from orgnav_jax.scenes.sceneset.storage import is_scene_set
 from orgnav_jax.scenes.synthetic.perception import Perception
 from orgnav_jax.tables import pages
 from orgnav_jax.tables.calibration import BUDGET, SEED, SETTINGS, table_text
+from orgnav_jax.tables.layout import local_path
 from orgnav_jax.tables.provenance import process_provenance, record_provenance, work_recorded
 from orgnav_jax.training.config import get_config
 
@@ -82,7 +83,7 @@ def budget_dir(budget: int) -> Path:
 def run(setting: str, row: str, budget: int = BUDGET) -> Path:
     """Train `row` on the setting for `budget` env steps (resumed if started) and evaluate
     it on val."""
-    run_dir = budget_dir(budget) / "runs" / f"{row}-{setting}"
+    run_dir = local_path(budget_dir(budget) / "runs" / f"{row}-{setting}")
     cfg = get_config(row, scenes_dir=str(build_setting(setting)), seed=SEED,
                      total_env_steps=budget, dropout=0.0, run_dir=str(run_dir))
     work_recorded(run_dir, lambda resumed: api.train(cfg, resume=resumed),

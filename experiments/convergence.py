@@ -31,6 +31,7 @@ from orgnav_jax import api
 from orgnav_jax.errors import run_cli
 from orgnav_jax.plots.curves import plot_curves
 from orgnav_jax.tables.convergence_page import campaign_rows, report, rows_of, verdict_lines
+from orgnav_jax.tables.layout import local_path
 from orgnav_jax.tables.pages import regenerate
 from orgnav_jax.tables.provenance import process_provenance, record_provenance
 from orgnav_jax.training.config import get_config
@@ -52,9 +53,7 @@ ROWS = {"baseline": ("baseline", {}),
 def row_config(row: str, out: Path = OUT):
     """The campaign row's TrainConfig and whether its runs exist (then it resumes them
     with their saved config, the cap as budget)."""
-    base = out / "runs" / row
-    if base.is_relative_to(Path.cwd()):        # config.json names no one machine's path
-        base = base.relative_to(Path.cwd())
+    base = local_path(out / "runs" / row)
     if is_run_dir(seed_run_dir(str(base), SEEDS[0])):
         return api.resume_config(base, SEEDS, total_env_steps=CAP), True
     preset, setting = ROWS[row]
@@ -63,30 +62,31 @@ def row_config(row: str, out: Path = OUT):
                       **setting), False
 
 
+def interrupted_at(run: Path) -> str:
+    """What an interrupted process did to a run: the last env step its metrics record."""
+    steps = max((r["env_steps"] for r in read_metrics(run, skip_broken=True)), default=0)
+    return f"interrupted at about {steps:,} env steps"
+
+
 def run_row(row: str, out: Path = OUT, progress: bool = True) -> str:
     """Train or resume the campaign's row until the rule says converged (or the cap), and
     append what this process did to both runs' provenance.json, also when interrupted
     (Ctrl-C, SIGTERM) -> that line."""
     cfg, resumed = row_config(row, out)
     process_provenance()                        # the code this process loaded
-    did = "interrupted"
+    did = None                                  # stays None when interrupted
     try:
-        summaries = api.train_seeds(cfg, SEEDS, resume=resumed, progress=progress,
-                                    until_converged=True)
-        stopped = summaries[0]["stopped"]
+        stopped = api.train_seeds(cfg, SEEDS, resume=resumed, progress=progress,
+                                  until_converged=True)[0]["stopped"]
         did = f"stopped by the rule: {stopped}" if stopped else f"reached the cap ({CAP:,})"
     finally:
         for s in SEEDS:
             run = Path(seed_run_dir(cfg.run_dir, s))
-            if not is_run_dir(run):
-                continue
-            if did == "interrupted":
-                steps = max((r["env_steps"] for r in read_metrics(run, skip_broken=True)),
-                            default=0)
-                did = f"interrupted at about {steps:,} env steps"
-            record_provenance(run, f"{'resumed' if resumed else 'trained'} in one program "
-                              f"with seeds {SEEDS[0]} {SEEDS[1]} until converged (python "
-                              f"experiments/convergence.py run {row}): {did}")
+            if is_run_dir(run):
+                record_provenance(run, f"{'resumed' if resumed else 'trained'} in one "
+                                  f"program with seeds {SEEDS[0]} {SEEDS[1]} until converged "
+                                  f"(python experiments/convergence.py run {row}): "
+                                  f"{did or interrupted_at(run)}")
     return did
 
 

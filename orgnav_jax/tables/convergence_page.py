@@ -23,6 +23,7 @@ from orgnav_jax.tables.convergence import (
 from orgnav_jax.tables.layout import run_dir
 from orgnav_jax.tables.rows import RANDOM, Row
 from orgnav_jax.training.config import load_config
+from orgnav_jax.training.run_dir import METRICS_FILE, read_metrics
 
 SEED_SUFFIX = re.compile(r"-s\d+$")
 TABLE_5M_ROWS = ("baseline", "org", "il", "org_il", "we", "dsp", "dsavn", "savn")
@@ -100,7 +101,14 @@ def rule_state(v: Verdict) -> str:
         else "not converged")
 
 
-def campaign_table(rows: dict[str, list[Path]], curves: dict[str, SeedMeanCurve]) -> list[str]:
+def first_converged(curves: dict[str, SeedMeanCurve]) -> dict[str, Verdict | None]:
+    """Each row's converged_at (where the rule first said converged; None where it never
+    did or cannot judge the curve), computed once for the page's tables."""
+    return {row: None if applicable(c) else converged_at(c) for row, c in curves.items()}
+
+
+def campaign_table(rows: dict[str, list[Path]], curves: dict[str, SeedMeanCurve],
+                   firsts: dict[str, Verdict | None]) -> list[str]:
     lines = ["| row | setting | seeds | evaluations | to env step | last quarter | quarter "
              "before | change | rule | B (said at) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -113,7 +121,7 @@ def campaign_table(rows: dict[str, list[Path]], curves: dict[str, SeedMeanCurve]
         if why:
             lines.append(f"{head} | | | not judged: {why} | |")
             continue
-        v, first = converged(curve), converged_at(curve)
+        v, first = converged(curve), firsts[row]
         lines.append(f"{head} {quarter_cells(v)} | {rule_state(v)} | "
                      f"{f'{first.budget:,} (at {first.env_steps:,})' if first else '-'} |")
     return lines
@@ -155,17 +163,17 @@ def tenths_table(table_dir: Path, rows: tuple[str, ...]) -> list[str]:
 
 
 def has_val(run: Path) -> bool:
-    """Whether a run directory's metrics.jsonl holds a val evaluation."""
-    return (run / "metrics.jsonl").is_file() and \
-        '"kind": "val"' in (run / "metrics.jsonl").read_text()
+    """Whether a run directory's metrics.jsonl holds a val evaluation (its typed reader: a
+    damaged line is an error naming the file, a line cut by a kill is skipped)."""
+    return (run / METRICS_FILE).is_file() and any(
+        r["kind"] == "val" for r in read_metrics(run, skip_broken=True))
 
 
-def table_budget(curves: dict[str, SeedMeanCurve]) -> tuple[int | None, str]:
-    """The table's budget (docs/results.md): the largest env step at which the rule first
-    said converged among BUDGET_ROWS, rounded up to whole BUDGET_ROUND -> (it, one
-    sentence), or (None, which rows it waits for)."""
-    said = {row: converged_at(curves[row]) if row in curves and not applicable(curves[row])
-            else None for row in BUDGET_ROWS}
+def table_budget(firsts: dict[str, Verdict | None]) -> tuple[int | None, str]:
+    """The table's budget (docs/results.md) from the rows' first_converged: the largest
+    env step at which the rule first said converged among BUDGET_ROWS, rounded up to
+    whole BUDGET_ROUND -> (it, one sentence), or (None, which rows it waits for)."""
+    said = {row: firsts.get(row) for row in BUDGET_ROWS}
     waiting = [row for row, v in said.items() if v is None]
     if waiting:
         return None, (f"Not fixed yet: {', '.join(waiting)} not converged by the rule "
@@ -193,8 +201,9 @@ def report(out: Path, table_5m: Path, root: Path) -> str:
             "seeds 100-101, val every 204,800 env steps (`runs/`).", ""]
     if rows:
         curves = row_curves(rows)
-        text += ["## The rule on each row", "", *campaign_table(rows, curves), "",
-                 f"The table's budget: {table_budget(curves)[1]}", "",
+        firsts = first_converged(curves)
+        text += ["## The rule on each row", "", *campaign_table(rows, curves, firsts), "",
+                 f"The table's budget: {table_budget(firsts)[1]}", "",
                  "## Val success by span of env steps (seed mean, points)", "",
                  *span_table(curves, SPANS_M), ""]
     text += ["## The 5 M calibrated table's rows, by tenth of their budget", "",

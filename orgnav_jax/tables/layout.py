@@ -22,6 +22,13 @@ TABLE_FILES = ("spec.json", "results.json", "table.md", "claims.md", "provenance
                "curves.png", "convergence.md")
 
 
+def local_path(path: Path) -> Path:
+    """`path` relative to the working directory when it lies under it, else as given: the
+    run directory an experiment script gives the trainer, so that the config.json it
+    records names no one machine's checkout."""
+    return path.relative_to(Path.cwd()) if path.is_relative_to(Path.cwd()) else path
+
+
 def run_dir(out: Path, row: str | Row, seed: int | str) -> Path:
     """OUT/runs/BASE-sS: the run of a row (of a TPN row: its base row's run)."""
     row = row if isinstance(row, Row) else Row.of(row)
