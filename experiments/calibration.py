@@ -2,7 +2,7 @@
 
     python experiments/calibration.py run --setting g3 --row we        # one calibration run
     python experiments/calibration.py run --setting g3d1 --row baseline
-    python experiments/calibration.py random                           # Random on val
+    python experiments/calibration.py random [--setting g5v]           # Random on val
     python experiments/calibration.py table                            # writes calibration.md
     python experiments/calibration.py --check                          # recompute; exit 1 if
                                                                        # calibration.md differs
@@ -41,8 +41,10 @@ from orgnav_jax.errors import run_cli
 from orgnav_jax.scenes import build, save
 from orgnav_jax.scenes.sceneset.storage import is_scene_set
 from orgnav_jax.scenes.synthetic.perception import Perception
+from orgnav_jax.scenes.synthetic.presets import get_preset
 from orgnav_jax.tables import pages
-from orgnav_jax.tables.calibration import BUDGET, SEED, SETTINGS, table_text
+from orgnav_jax.tables.calibration import (BUDGET, SEED, SETTINGS, episode_distance,
+                                           random_name, table_text)
 from orgnav_jax.tables.layout import local_path
 from orgnav_jax.tables.provenance import process_provenance, record_provenance, work_recorded
 from orgnav_jax.training.config import get_config
@@ -58,7 +60,8 @@ def build_setting(setting: str) -> Path:
     """The setting's scene set (built once, reused)."""
     path = scenes_dir(setting)
     if not is_scene_set(path):
-        save(build("small", 0, perception=Perception(**SETTINGS[setting]), progress=True),
+        preset = get_preset("small", episode_distance=episode_distance(setting))
+        save(build(preset, 0, perception=Perception(**SETTINGS[setting]), progress=True),
              path)
     return path
 
@@ -93,10 +96,12 @@ def run(setting: str, row: str, budget: int = BUDGET) -> Path:
     return run_dir
 
 
-def run_random() -> Path:
-    out = OUT / "runs" / "random"
+def run_random(setting: str) -> Path:
+    """The random policy on the setting's val episodes (it reads no perception: one run
+    serves every setting with the same episodes)."""
+    out = OUT / "runs" / random_name(setting)
     out.mkdir(parents=True, exist_ok=True)
-    api.evaluate_policy("random", "val", scenes_dir=str(build_setting(next(iter(SETTINGS)))),
+    api.evaluate_policy("random", "val", scenes_dir=str(build_setting(setting)),
                         seed=SEED, out=out / "val_results.json", progress=True)
     record_provenance(out, "evaluated on val")
     return out
@@ -114,11 +119,13 @@ def main(argv: list[str] | None = None) -> int:
     r = sub.add_parser("run", help="train and val-evaluate one row on one setting")
     r.add_argument("--setting", required=True, choices=sorted(SETTINGS))
     r.add_argument("--row", required=True, choices=("we", "baseline"))
-    sub.add_parser("random", help="evaluate the random policy on val")
+    rr = sub.add_parser("random", help="evaluate the random policy on val")
+    rr.add_argument("--setting", default=next(iter(SETTINGS)), choices=sorted(SETTINGS),
+                    help="whose episodes (default: the first setting's, `small`'s)")
     sub.add_parser("table", help="write calibration.md")
     args = ap.parse_args(argv)
     out = budget_dir(args.budget)
-    page = lambda: table_text(out, args.budget, OUT / "runs" / "random")
+    page = lambda: table_text(out, args.budget, OUT / "runs")
     if args.check:
         return pages.regenerate({out / "calibration.md": page()}, check=True)
     if args.command is None:
@@ -127,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "run":
         run(args.setting, args.row, args.budget)
     elif args.command == "random":
-        run_random()
+        run_random(args.setting)
     text = page()
     pages.write_pages({out / "calibration.md": text})
     print(text)

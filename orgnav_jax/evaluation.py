@@ -182,9 +182,12 @@ def run_episodes(policy: Policy, policy_params, scenes: SceneSet, episodes: Epis
 
 
 def spl(success, path_len, optimal_len) -> np.ndarray:
-    """Per-episode SPL = S * L_opt / max(L, L_opt) (0 where both lengths are 0)."""
+    """Per-episode SPL = S * L_opt / max(L, L_opt); where both lengths are 0 (a start that
+    sees its target, Done at once: the optimal path) it is S, as the release's count of
+    states gives ((L_opt + 1) / (L + 1) = 1)."""
     success, L, L_opt = (np.asarray(a, np.float64) for a in (success, path_len, optimal_len))
-    return success * L_opt / np.maximum(np.maximum(L, L_opt), 1e-12)
+    longest = np.maximum(L, L_opt)
+    return np.where(longest > 0, success * L_opt / np.maximum(longest, 1), success)
 
 
 def summarize(per_episode: dict[str, np.ndarray]) -> dict[str, float]:

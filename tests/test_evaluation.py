@@ -29,6 +29,8 @@ def test_spl_hand_made_cases():
     optimal = np.array([4, 4, 3, 5, 2])
     np.testing.assert_allclose(evaluation.spl(success, path_len, optimal),
                                [1.0, 0.5, 0.0, 0.5, 1.0])
+    # a start that sees its target: Done at once is the optimal path (1), a detour is 0
+    np.testing.assert_allclose(evaluation.spl([1, 1, 0], [0, 3, 0], [0, 0, 0]), [1.0, 0.0, 0.0])
     per = {"success": success, "spl": evaluation.spl(success, path_len, optimal),
            "optimal_len": optimal}
     m = evaluation.summarize(per)
