@@ -113,6 +113,7 @@ def test_predictions_are_claims_of_calibrated_tables_only():
     assert "full model > Baseline (paper +12.9)" in calibrated and "D-SP > WE" in calibrated
     assert ("org_il+tpn@1e-4", "baseline") in [c[1:3] for c in claims_lib.claims(
         "1e-4", spec("calibrated", ["baseline"]))]
+    assert names(spec("calibrated_22m", ["baseline", "we", "dsp"])) == calibrated
     for other in (spec("small", ["baseline", "we", "dsp"]), None):
         assert not {"full model > Baseline (paper +12.9)", "D-SP > WE"} & set(names(other))
 

@@ -187,12 +187,16 @@ def test_knobs_recorded_in_the_set_info():
     assert not any(k.startswith("perception.") for k, _ in builder.build("tiny", 0, num_rooms=1).info)
 
 
-def test_calibrated_preset_is_the_chosen_calibration_setting():
+def test_calibrated_presets_are_the_chosen_calibration_settings():
     from orgnav_jax.tables import calibration
-    preset = get_preset("calibrated")
-    assert preset.perception.changed() == calibration.SETTINGS[calibration.CHOSEN]
     small = get_preset("small")
-    assert dataclasses.replace(preset, name="small", perception=Perception()) == small
+    for name, setting in (("calibrated", calibration.CHOSEN),
+                          ("calibrated_22m", calibration.CHOSEN_22M)):
+        preset = get_preset(name)
+        assert preset.perception.changed() == calibration.SETTINGS[setting]
+        # `small`'s rooms and splits; the episodes those the setting was calibrated on
+        assert dataclasses.replace(preset, name="small", perception=Perception()) == \
+            get_preset(small, episode_distance=calibration.episode_distance(setting))
 
 
 def test_every_entry_point_defaults_to_the_calibrated_preset():

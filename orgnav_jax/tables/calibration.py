@@ -4,7 +4,8 @@ Baseline against the targets (AI2-THOR's Table 1 values), the Baseline's release
 whether its learning curve had flattened.
 
 SETTINGS lists every setting tried, in the order tried; CHOSEN the one the `calibrated`
-scene preset freezes (presets.CALIBRATED_PERCEPTION; a test keeps the two equal).
+scene preset freezes (presets.CALIBRATED_PERCEPTION), CHOSEN_22M the one the
+`calibrated_22m` preset freezes with IN_VIEW episodes (a test keeps each pair equal).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orgnav_jax.constants import ROOM_TYPES
+from orgnav_jax.scenes.synthetic.presets import IN_VIEW_EPISODES
 from orgnav_jax.tables.runs import read_results, val_records
 from orgnav_jax.training.run_dir import METRICS_FILE
 
@@ -61,7 +62,7 @@ SETTINGS: dict[str, dict] = {
 # episodes; among several, the one whose Baseline lies nearest 56.
 # a setting whose name ends in "v": the evaluation episodes of every room type may start
 # with the target in view (ScenePreset.episode_distance min 0, as the authors' sampler)
-IN_VIEW = {room: (0, None) for room in ROOM_TYPES}
+IN_VIEW = IN_VIEW_EPISODES
 
 
 # The setting the `calibrated` scene preset freezes (presets.CALIBRATED_PERCEPTION; a test
@@ -69,6 +70,8 @@ IN_VIEW = {room: (0, None) for room in ROOM_TYPES}
 # targets and whose Baseline had flattened by 5 M steps (g4d1 lies nearer both targets but
 # its Baseline still gained 5 points over the last fifth of training).
 CHOSEN = "g3d1"
+CHOSEN_22M = "g5d6v"      # `calibrated_22m` (presets.CALIBRATED_22M_PERCEPTION, IN_VIEW)
+CHOSEN_AT = {BUDGET: CHOSEN, 22_000_000: CHOSEN_22M}   # budget -> the setting its page marks
 
 
 def val_summary(run_dir: Path) -> dict | None:
@@ -133,11 +136,11 @@ def _cell(overall: dict | None, row: str) -> str:
 
 def table_text(out: Path, budget: int = BUDGET, random_runs: Path | None = None) -> str:
     """calibration.md of the calibration runs in OUT/runs, trained for `budget` env steps
-    (the chosen setting is marked on the tables' budget's page only); Random from
+    (the setting chosen at that budget, CHOSEN_AT, is marked); Random from
     random_runs/random_name(setting) (OUT/runs by default: it does not depend on the
     budget)."""
     runs = out / "runs"
-    chosen = CHOSEN if budget == BUDGET else None
+    chosen = CHOSEN_AT.get(budget)
     lines = [
         f"# Perception calibration (val split, seed 100, {budget / 1e6:g} M env steps)",
         "",

@@ -11,7 +11,7 @@ bootstrap interval, one-sided p and three-level verdict (stats.statistics).
 
 To add a claim: a line in `claims` (a claim of the paper's tables), `later_claims` (one
 whose row came after tables were made: gated on a row, so older tables' claims.md stay
-as they are) or `predicted_claims` (a registered prediction of the calibrated table).
+as they are) or `predicted_claims` (a registered prediction of the calibrated tables).
 """
 
 from __future__ import annotations
@@ -86,13 +86,17 @@ def later_claims(lr: str) -> list[tuple[str, str, str, int, str]]:
     ]
 
 
+# the presets whose tables were pre-registered with predictions (docs/results.md: "The
+# calibrated table: predictions", commit e68b2c8; "The converged table: predictions")
+PREDICTED_PRESETS = ("calibrated", "calibrated_22m")
+
+
 def predicted_claims(lr: str, spec: dict | None) -> list[tuple[str, str, str, int]]:
-    """The predictions registered for the calibrated benchmark (docs/results.md, "The
-    calibrated table: predictions", commit e68b2c8) that no claim above states: listed
-    for a table on the `calibrated` preset only (named in its spec, or the default: a spec
-    naming no preset was dropped from them; its runs are checked to be on it,
-    runs.check_run_scenes)."""
-    if spec is None or table_scenes(spec["config"]) != "calibrated":
+    """The predictions registered for the calibrated benchmarks that no claim above
+    states: listed for a table on a PREDICTED_PRESETS preset only (named in its spec, or
+    the default: a spec naming no preset was dropped from them; its runs are checked to
+    be on it, runs.check_run_scenes)."""
+    if spec is None or table_scenes(spec["config"]) not in PREDICTED_PRESETS:
         return []
     return [("full model > Baseline (paper +12.9)", f"org_il+tpn@{lr}", "baseline", 1),
             ("D-SP > WE", "dsp", "we", 1)]
