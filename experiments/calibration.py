@@ -19,10 +19,11 @@ the row at the table's budget (5 M env steps, dropout 0, seed 100: no table uses
 OUT/runs/<row>-<setting>, and evaluates its best-on-val checkpoint on the whole val split
 (250 episodes per room type) into val_results.json; the test split is never touched.
 Random does not depend on perception: one evaluation on val (seed 100) serves every
-setting with the same episodes (runs/random, runs/random-in-view). `--budget N` (env steps) calibrates at another budget, e.g. the budget at which
-the rows have converged (docs/results.md, "When a row has converged"): its runs and page
-go to OUT/at_N (runs/<row>-<setting>, calibration.md), Random the evaluations
-above; the default, 5 M, is OUT itself.
+setting with the same episodes (runs/random, runs/random-in-view). `--budget N` (env
+steps) calibrates at another budget, e.g. the budget at which the rows have converged
+(docs/results.md, "When a row has converged"): its runs and page go to OUT/at_N
+(runs/<row>-<setting>, calibration.md), Random the evaluations above; the default, 5 M,
+is OUT itself.
 
 The table (calibration.md) has, per setting, val success / SPL of Random, WE and the
 Baseline beside the targets (AI2-THOR's Table 1 values: Random 8 +- 3, WE 33 +- 5, Baseline
