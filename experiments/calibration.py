@@ -12,12 +12,13 @@
 A setting is a set of perception knobs (scenes/synthetic/perception.py) over the `small`
 preset: the same rooms, splits, categories and episodes, only the global view and the
 detector change; a setting whose name ends in v also lets the evaluation episodes start
-with the target in view (tables.calibration.IN_VIEW). SETTINGS (orgnav_jax/tables/calibration.py, with the page) lists every
-setting tried, in the order tried. `run` builds the
-setting's scene set once (data/calibration/<setting>, scene seed 0 as every table), trains
-the row at the table's budget (5 M env steps, dropout 0, seed 100: no table uses it) in
-OUT/runs/<row>-<setting>, and evaluates its best-on-val checkpoint on the whole val split
-(250 episodes per room type) into val_results.json; the test split is never touched.
+with the target in view (tables.calibration.episode_distance). SETTINGS
+(orgnav_jax/tables/calibration.py, with the page) lists every setting tried, in the order
+tried. `run` builds the setting's scene set once (data/calibration/<setting>, scene seed
+0 as every table), trains the row at the table's budget (5 M env steps, dropout 0, seed
+100: no table uses it) in OUT/runs/<row>-<setting>, and evaluates its best-on-val
+checkpoint on the whole val split (250 episodes per room type) into val_results.json; the
+test split is never touched.
 Random does not depend on perception: one evaluation on val (seed 100) serves every
 setting with the same episodes (runs/random, runs/random-in-view). `--budget N` (env
 steps) calibrates at another budget, e.g. the budget at which the rows have converged
