@@ -63,7 +63,7 @@ def test_scene_build_refuses_an_unknown_preset_before_building(monkeypatch, caps
     monkeypatch.setattr(sb.scenes, "build", no_build)
     line = error_of(sb.main, ["--presets", "tiny", "smal"], monkeypatch, capsys)
     assert line.endswith("error: unknown scene preset 'smal': expected one of ['calibrated', "
-                         "'large', 'paper', 'small', 'tiny']"), line
+                         "'calibrated_22m', 'large', 'paper', 'small', 'tiny']"), line
     assert "raw features" in error_of(sb.main, ["--presets", "large"], monkeypatch, capsys)
     assert "--seed -1" in error_of(sb.main, ["--seed", "-1"], monkeypatch, capsys)
 

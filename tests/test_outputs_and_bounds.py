@@ -184,7 +184,7 @@ def test_scenes_info_takes_a_preset_name(tmp_path, monkeypatch, capsys, cli_erro
     assert "16 rooms" in out
     msg = cli_error(scenes_main, ["info", "nope"])
     assert ("expected a SceneSet directory or a preset name "
-            "(calibrated, large, paper, small, tiny)") in msg
+            "(calibrated, calibrated_22m, large, paper, small, tiny)") in msg
 
 
 def test_evaluate_names_the_split_it_printed(tmp_path, tiny_dir, capsys):
