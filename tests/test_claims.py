@@ -655,6 +655,20 @@ def test_calibration_table_agrees_with_its_runs():
     for at in sorted(calibration.OUT.glob("at_*")):         # the calibrations at a budget
         if (at / "calibration.md").exists():
             assert calibration.main(["--budget", at.name[3:], "--check"]) == 0, at
+    page = (calibration.OUT / "at_22000000" / "calibration.md").read_text()
+    assert "| g5d6v (chosen) |" in page          # the setting calibrated_22m freezes
+
+
+def test_calibration_settings_name_their_episodes_and_shared_runs():
+    """A setting ending in v evaluates on episodes that may start in view: its WE run is
+    its global part's with the v kept, its Random the in-view one."""
+    from orgnav_jax.tables import calibration as cal
+    assert [cal.global_part(s) for s in ("g3d1", "g5d2v", "g5v", "g1")] == \
+        ["g3", "g5v", "g5v", "g1"]
+    assert cal.random_name("g5d6v") == "random-in-view" and cal.random_name("g3d1") == "random"
+    assert cal.episode_distance("g3d1") is None
+    assert {lo for lo, _ in dict(cal.episode_distance("g5d6v")).values()} == {0}
+    assert all(cal.global_part(s) in cal.SETTINGS for s in cal.SETTINGS)
 
 
 # round five (issue 67): tables fed the wrong files --------------------------------------
