@@ -141,6 +141,12 @@ def table_text(out: Path, budget: int = BUDGET, random_runs: Path | None = None)
     budget)."""
     runs = out / "runs"
     chosen = CHOSEN_AT.get(budget)
+    summaries: dict[Path, dict | None] = {}    # a run shared by several settings, read once
+
+    def summary(run_dir: Path) -> dict | None:
+        if run_dir not in summaries:
+            summaries[run_dir] = val_summary(run_dir)
+        return summaries[run_dir]
     lines = [
         f"# Perception calibration (val split, seed 100, {budget / 1e6:g} M env steps)",
         "",
@@ -165,10 +171,10 @@ def table_text(out: Path, budget: int = BUDGET, random_runs: Path | None = None)
         "|---|---|---|---|---|---|---|",
     ]
     for name, knobs in SETTINGS.items():
-        we, base = val_summary(runs / f"we-{global_part(name)}"), val_summary(runs / f"baseline-{name}")
+        we, base = summary(runs / f"we-{global_part(name)}"), summary(runs / f"baseline-{name}")
         if base is None and (we is None or global_part(name) != name):
             continue
-        random = val_summary((random_runs or runs) / random_name(name))
+        random = summary((random_runs or runs) / random_name(name))
         gain = curve_gain(runs / f"baseline-{name}") if base is not None else None
         spl = None if base is None else base["release_spl"]
         text = ", ".join([f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"

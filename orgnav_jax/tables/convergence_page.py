@@ -46,14 +46,14 @@ def rows_of(run_dirs) -> dict[str, list[Path]]:
 
 def verdict_lines(rows: dict[str, list[Path]]) -> list[str]:
     """One line per row: the rule at its last evaluation and where it first held."""
-    out = []
-    for row, dirs in rows.items():
-        curve = seed_mean_curve([read_val_curve(d) for d in dirs])
+    out, curves = [], row_curves(rows)
+    firsts = first_converged(curves)
+    for row, curve in curves.items():
         why = applicable(curve)
         if why:
             out.append(f"{row}: not judged ({why})")
             continue
-        v, first = converged(curve), converged_at(curve)
+        v, first = converged(curve), firsts[row]
         where = (f"first said converged at {first.env_steps:,} env steps (B = "
                  f"{first.budget:,})" if first else "has not said converged yet")
         out.append(f"{row}: {'converged' if v.converged else 'not converged'} ({v.why}); "
