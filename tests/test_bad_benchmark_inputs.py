@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from orgnav_jax.scenes.synthetic.presets import SCENE_PRESETS
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -62,8 +64,8 @@ def test_scene_build_refuses_an_unknown_preset_before_building(monkeypatch, caps
         raise AssertionError("a preset was built")
     monkeypatch.setattr(sb.scenes, "build", no_build)
     line = error_of(sb.main, ["--presets", "tiny", "smal"], monkeypatch, capsys)
-    assert line.endswith("error: unknown scene preset 'smal': expected one of ['calibrated', "
-                         "'calibrated_22m', 'large', 'paper', 'small', 'tiny']"), line
+    assert line.endswith(f"error: unknown scene preset 'smal': expected one of "
+                         f"{sorted(SCENE_PRESETS)}"), line
     assert "raw features" in error_of(sb.main, ["--presets", "large"], monkeypatch, capsys)
     assert "--seed -1" in error_of(sb.main, ["--seed", "-1"], monkeypatch, capsys)
 

@@ -14,6 +14,7 @@ import pytest
 from orgnav_jax import evaluate as evaluate_cli
 from orgnav_jax import plots
 from orgnav_jax import train as train_cli
+from orgnav_jax.scenes.synthetic.presets import SCENE_PRESETS
 
 
 def sha(path: Path) -> str:
@@ -184,7 +185,7 @@ def test_scenes_info_takes_a_preset_name(tmp_path, monkeypatch, capsys, cli_erro
     assert "16 rooms" in out
     msg = cli_error(scenes_main, ["info", "nope"])
     assert ("expected a SceneSet directory or a preset name "
-            "(calibrated, calibrated_22m, large, paper, small, tiny)") in msg
+            f"({', '.join(sorted(SCENE_PRESETS))})") in msg
 
 
 def test_evaluate_names_the_split_it_printed(tmp_path, tiny_dir, capsys):

@@ -11,6 +11,7 @@ scene preset freezes (presets.CALIBRATED_PERCEPTION), CHOSEN_22M the one the
 from __future__ import annotations
 
 import re
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -141,12 +142,7 @@ def table_text(out: Path, budget: int = BUDGET, random_runs: Path | None = None)
     budget)."""
     runs = out / "runs"
     chosen = CHOSEN_AT.get(budget)
-    summaries: dict[Path, dict | None] = {}    # a run shared by several settings, read once
-
-    def summary(run_dir: Path) -> dict | None:
-        if run_dir not in summaries:
-            summaries[run_dir] = val_summary(run_dir)
-        return summaries[run_dir]
+    summary = cache(val_summary)               # a run shared by several settings, read once
     lines = [
         f"# Perception calibration (val split, seed 100, {budget / 1e6:g} M env steps)",
         "",
