@@ -49,6 +49,16 @@ A spec with `"converged": true` (population, >= 2 seeds, 1,000-episode val evalu
 also gets OUT/convergence.md: the convergence rule on every trained row at its budget,
 and claims.md names the rows not converged (docs/results.md, "When a row has converged").
 
+A spec with `"extends": BASE` (also converged) makes BASE's table at convergence
+(docs/results.md, "Amendment: rows not converged at 22 M"; orgnav_jax/tables/extend.py):
+each row BASE has finished is judged by the rule on its own val curves; a row that has
+converged there (or that the rule cannot judge: SAVN) is carried over, its runs copied
+into OUT with their test results; a row that has not is copied without its test results
+and TPN and trains on, its seeds in one program, until the rule holds or the spec's
+total_env_steps (the cap), then is tested (its best-on-val checkpoint over the whole run)
+and its TPN rows trained again on it; a row BASE is still training is left for a later
+invocation. BASE's files are only read.
+
 VTNet's rows (issue 43, docs/vtnet.md): `vtnet` pre-trains each seed's visual
 transformer on the expert's actions first (api.pretrain of the seed's PretrainConfig, in
 OUT/runs/vtnet-pretrain-s<seed> beside the row's runs: config.json, metrics.jsonl with
@@ -73,7 +83,7 @@ from orgnav_jax.constants import DEFAULT_SCENE_PRESET
 from orgnav_jax.errors import read_json, run_cli
 from orgnav_jax.plots import plot_curves
 from orgnav_jax.safe_write import write_text_atomic
-from orgnav_jax.tables import table_files
+from orgnav_jax.tables import extend, table_files
 from orgnav_jax.tables.layout import (check_out, existing_results, pretrain_dir,
                                       results_path, run_dir)
 from orgnav_jax.tables.provenance import process_provenance, record_provenance, work_recorded
@@ -92,9 +102,10 @@ def done_or_none(out: Path, row: Row, seed: int) -> dict | None:
     return None if path is None else read_results(path)[0]
 
 
-def run_tpn(row: Row, seed: int, out: Path, overrides: dict, tpn_fields: dict) -> dict:
+def run_tpn(row: Row, seed: int, out: Path, overrides: dict, tpn_fields: dict,
+            extended: bool = False) -> dict:
     """BASE+VARIANT: train (or reuse) the base row and its TPN, evaluate the variant."""
-    run_one(Row(row.base), seed, out, overrides)
+    run_one(Row(row.base), seed, out, overrides, extended)
     done = done_or_none(out, row, seed)
     if done is not None:
         return done
@@ -125,9 +136,11 @@ def pretrain_seed(row: Row, seed: int, out: Path, overrides: dict) -> Path:
     return pre
 
 
-def run_one(row: Row, seed: int, out: Path, overrides: dict) -> dict:
+def run_one(row: Row, seed: int, out: Path, overrides: dict, extended: bool = False) -> dict:
     """Train (or resume, or skip) one row and seed -> its test metrics. Row `random`:
-    the random policy on the same test episodes, its actions sampled with `seed`."""
+    the random policy on the same test episodes, its actions sampled with `seed`.
+    extended (a table that extends another): the row's population trained the run under
+    the convergence rule (train_row_population); it is only tested here."""
     done = done_or_none(out, row, seed)
     if done is not None:
         return done
@@ -147,20 +160,34 @@ def run_one(row: Row, seed: int, out: Path, overrides: dict) -> dict:
     def work(resumed: bool) -> dict:
         if pre and not resumed:          # once the A2C run has started, its start is fixed
             pretrain_seed(row, seed, out, overrides)
-        api.train(cfg, resume=resumed, progress=sys.stderr.isatty())
+        if not extended:
+            api.train(cfg, resume=resumed, progress=sys.stderr.isatty())
         return api.test_run(where, progress=False)["overall"]
     return work_recorded(where, work, lambda resumed: (
-        f"{'resumed and finished' if resumed else 'trained'}"
+        "tested" if extended else f"{'resumed and finished' if resumed else 'trained'}"
         f"{f' from {pre.name}' if pre else ''}, tested"))
 
 
-def train_row_population(row: Row, seeds: list[int], out: Path, overrides: dict) -> None:
+def train_row_population(row: Row, seeds: list[int], out: Path, overrides: dict,
+                         extended: bool = False) -> None:
     """Train the seeds of navigation row `row` that lack test results in one program
     (OUT/runs/<row>-s<seed>); seeds whose runs were started separately are left to
     run_one (a population resumes only runs at a common checkpoint), as are SAVN rows.
     A PRETRAIN_ROWS row pre-trains its seeds first, one by one (pretrain_seed), and
-    seed S starts from OUT/runs/<row>-pretrain-sS."""
+    seed S starts from OUT/runs/<row>-pretrain-sS. extended: the row's runs, copied from
+    the base table (extend.prepare), train on together until the convergence rule holds
+    or the config's total_env_steps (the cap); a resume the rule already stops does no
+    more training."""
     todo = [s for s in seeds if not results_path(out, row, s).exists()]
+    if extended:
+        if todo:
+            cfg = get_config(row.base, **{**overrides, "run_dir": str(out / "runs" / row.base)})
+            api.train_seeds(cfg, seeds, resume=True, progress=sys.stderr.isatty(),
+                            until_converged=True)
+            for s in seeds:
+                record_provenance(run_dir(out, row, s), "trained on under the convergence rule "
+                                  f"in one program with seeds {' '.join(map(str, seeds))}")
+        return
     started = [is_run_dir(run_dir(out, row, s)) for s in todo]
     pre = {"pretrained": str(out / "runs" / f"{row.base}-pretrain")} if row.pretrains \
         else {}                          # train_seeds: seed S's is <pretrained>-sS
@@ -262,9 +289,15 @@ def main(argv: list[str] | None = None) -> None:
     check_out(out, args.spec)
     table_files.check_run_files(out, args.rows, args.seeds, table_scenes(overrides))
     out.mkdir(parents=True, exist_ok=True)
+    extended = spec is not None and "extends" in spec
     with RunLock(out):        # one table writer per --out (results.json is rewritten)
         if spec is not None:
             write_text_atomic(out / "spec.json", json.dumps(spec, indent=1) + "\n")
+        if extended:          # copy the base table's finished rows; wait for the others
+            states = extend.prepare(Path(spec["extends"]), out, args.rows, args.seeds)
+            for base_row, state in states.items():
+                print(state.describe(base_row, spec["extends"]), flush=True)
+            args.rows = [r for r in args.rows if states[Row.of(r).base].action != extend.WAIT]
         # without a spec, rows of earlier invocations with the same --out stay in the
         # table; with one, the table is exactly what the spec's runs hold
         saved = out / "results.json"
@@ -277,9 +310,9 @@ def main(argv: list[str] | None = None) -> None:
         for seed, name in order:
             row = Row.of(name)
             if args.population and row.base != "random" and seed == args.seeds[0]:
-                train_row_population(Row(row.base), args.seeds, out, overrides)
-            metrics = (run_tpn(row, seed, out, overrides, tpn_fields) if row.is_tpn
-                       else run_one(row, seed, out, overrides))
+                train_row_population(Row(row.base), args.seeds, out, overrides, extended)
+            metrics = (run_tpn(row, seed, out, overrides, tpn_fields, extended) if row.is_tpn
+                       else run_one(row, seed, out, overrides, extended))
             metrics = dict(metrics, **pretrain_budget(out, name, seed))
             results.setdefault(name, {})[str(seed)] = metrics
             print(f"{name} seed {seed}: " + ", ".join(f"{m} {100 * metrics[m]:.1f}"

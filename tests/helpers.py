@@ -1,11 +1,14 @@
 """Shared by the test modules and tests/scale_worker.py (a subprocess script): the small
-run every trainer test uses, and the trained-vs-random check of the learning tests.
+run every trainer test uses, the trained-vs-random check of the learning tests, and a
+results JSON made from per-episode success flags.
 (pytest puts tests/ on sys.path: `from helpers import ...`.)"""
 
 from __future__ import annotations
 
 import importlib.util
 from pathlib import Path
+
+import numpy as np
 
 CHUNK = 16 * 8 * 2          # env steps per chunk of small runs
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
@@ -46,3 +49,18 @@ def trained_and_random_success(run_dir, scenes_dir, split: str) -> tuple[float, 
     rand = evaluation.evaluate(evaluation.random_policy(), None, rooms, eps,
                                seed=0)["overall"]["success"]
     return trained, rand
+
+
+def fake_results(success: np.ndarray, rng) -> dict:
+    """A results JSON as api.evaluate writes it, from per-episode success flags."""
+    from orgnav_jax.evaluation import episode_record, metrics
+    e = len(success)
+    optimal = rng.integers(1, 12, e)
+    path = optimal + rng.integers(0, 8, e)
+    timeout = ~success & (rng.random(e) < 0.5)
+    per = {"success": success, "wrong_done": ~success & ~timeout, "timeout": timeout,
+           "path_len": path, "optimal_len": optimal, "revisits": rng.integers(0, 5, e),
+           "failed_moves": rng.integers(0, 3, e), "room_type": np.arange(e) % 4,
+           "target": np.arange(e) % 22}
+    per["spl"] = success * optimal / np.maximum(path, optimal)
+    return dict(metrics(per), per_episode=episode_record(per))

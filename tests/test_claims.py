@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import EXPERIMENTS, experiment_script
+from helpers import EXPERIMENTS, experiment_script, fake_results
 
 from orgnav_jax.tables import (adjacency, before_parity, layout, provenance, rows, runs, spec,
                                stats, table_files)
@@ -25,21 +25,6 @@ BEFORE_PARITY = EXPERIMENTS / "results" / "before_parity"
 def claims():
     """experiments/claims.py, the command line."""
     return experiment_script("claims")
-
-
-def fake_results(success: np.ndarray, rng) -> dict:
-    """A results JSON as api.evaluate writes it, from per-episode success flags."""
-    from orgnav_jax.evaluation import episode_record, metrics
-    e = len(success)
-    optimal = rng.integers(1, 12, e)
-    path = optimal + rng.integers(0, 8, e)
-    timeout = ~success & (rng.random(e) < 0.5)
-    per = {"success": success, "wrong_done": ~success & ~timeout, "timeout": timeout,
-           "path_len": path, "optimal_len": optimal, "revisits": rng.integers(0, 5, e),
-           "failed_moves": rng.integers(0, 3, e), "room_type": np.arange(e) % 4,
-           "target": np.arange(e) % 22}
-    per["spl"] = success * optimal / np.maximum(path, optimal)
-    return dict(metrics(per), per_episode=episode_record(per))
 
 
 @pytest.fixture()

@@ -150,6 +150,11 @@ def test_the_trainer_stops_when_the_rule_holds_and_resumes_to_the_cap(tmp_path):
     assert out[0]["stopped"].startswith("converged: seed-mean val success 50.0")
     assert 50 * STEP < stopped_at < 200 * STEP
     assert cv.check_runs(dirs).converged and cv.check_runs(dirs).env_steps == stopped_at
+    # resumed with the rule, which holds there: no more training, no more evaluations
+    again = run_population(stand_in_stage(plateau), runners, [cfg, cfg], dirs, resume=True,
+                           progress=False, stop=cv.stop_when_converged())
+    assert again[0]["env_steps"] == stopped_at and again[0]["stopped"] == out[0]["stopped"]
+    assert cv.check_runs(dirs).evaluations == stopped_at // STEP
     # a checkpoint at the stop: --resume continues there, to the cap without the rule
     out = run_population(stand_in_stage(plateau), runners, [cfg, cfg], dirs, resume=True,
                          progress=False)

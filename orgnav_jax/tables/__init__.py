@@ -23,4 +23,6 @@ library"). One job a module, lowest first:
                  stop criterion built on it (--until-converged)
     convergence_page  the budget campaign's page: the rule per row, val by span of env
                  steps, a table's rows by tenth of their budget
+    extend       a table extended to convergence (a spec's "extends"): each base row
+                 carried over, trained on under the rule, or left until it finishes
 """

@@ -22,7 +22,7 @@ from orgnav_jax.tables.convergence import (
 )
 from orgnav_jax.tables.layout import run_dir
 from orgnav_jax.tables.rows import RANDOM, Row
-from orgnav_jax.training.config import load_config
+from orgnav_jax.training.config import get_config, load_config
 from orgnav_jax.training.run_dir import METRICS_FILE, read_metrics
 
 SEED_SUFFIX = re.compile(r"-s\d+$")
@@ -262,6 +262,14 @@ def table_convergence(out: Path, spec: dict) -> tuple[str, list[str]]:
              "claims are not judged at convergence.", "",
              "| row | seeds | evaluations | to env step | last quarter | quarter before | "
              "change | verdict |", "|---|---|---|---|---|---|---|---|"]
+    if "extends" in spec:
+        cap = get_config("baseline", **spec["config"]).total_env_steps
+        lines[2:2] = [f"This table extends `{spec['extends']}` (the spec's \"extends\"): its "
+                      "rows that converged there, or that the rule cannot judge (SAVN: one "
+                      "seed per program), are carried over with their runs and test results; "
+                      "the others trained on from its runs under the stop criterion, to at most "
+                      f"{cap:,} env steps, and were tested again from their best-on-val "
+                      "checkpoint over the whole run (tables/extend.py).", ""]
     not_converged = []
     for row, dirs in table_rows(out, spec).items():
         cells, ok = table_row_rule(dirs)

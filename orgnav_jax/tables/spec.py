@@ -1,8 +1,11 @@
 """A table's spec: its one definition (JSON: out, rows, seeds, config overrides, tpn
-fields; optionally about, population and converged), e.g.
+fields; optionally about, population, converged and extends), e.g.
 experiments/tables/table_5m.json, copied to OUT/spec.json when the table is made.
 `"converged": true` asks the table to judge every trained row by the convergence rule
-(tables/convergence.py) at its budget: OUT/convergence.md (table_files)."""
+(tables/convergence.py) at its budget: OUT/convergence.md (table_files). `"extends":
+BASE` makes the table of BASE's rows at convergence: rows the rule says have not
+converged in BASE train on from its runs under the stop criterion, config's
+total_env_steps the cap (tables/extend.py)."""
 
 from __future__ import annotations
 
@@ -17,12 +20,12 @@ from orgnav_jax.tpn.config import get_tpn_config
 from orgnav_jax.training.config import get_config
 
 SPEC_KEYS = {"out": str, "rows": list, "seeds": list, "config": dict, "tpn": dict}
-SPEC_OPTIONAL = {"about": str, "population": bool, "converged": bool}
+SPEC_OPTIONAL = {"about": str, "population": bool, "converged": bool, "extends": str}
 
 
 def read_spec(path: str | Path) -> dict:
     """A table spec (JSON: out, rows, seeds, config, tpn; optionally about, population,
-    converged) -> dict; ValueError naming the file and the field otherwise (with
+    converged, extends) -> dict; ValueError naming the file and the field otherwise (with
     "converged": true, also where the rule could not judge its rows: check_rule_applies)."""
     if Path(path).is_dir():
         raise ValueError(f"table spec {path}: a directory, expected a JSON file")
@@ -64,6 +67,12 @@ def read_spec(path: str | Path) -> dict:
     get_tpn_config(base_dir="runs/x", **spec["tpn"])
     if spec.get("converged"):
         check_rule_applies(path, spec, cfg.eval_episodes_per_room_type)
+    if "extends" in spec:
+        base = Path(spec["extends"]) / "spec.json"
+        if not base.is_file():
+            raise ValueError(f"table spec {path}: field 'extends': {base} missing (expected "
+                             "the directory of a table run_table.py made)")
+        check_extends(path, spec, read_spec(base))
     return spec
 
 
@@ -85,6 +94,42 @@ def check_rule_applies(path: str | Path, spec: dict, eval_episodes_per_room_type
                          f"{eval_episodes_per_room_type} gives val evaluations of {episodes:,}"
                          f" episodes; {need} at least {MIN_VAL_EPISODES:,} (250 per room "
                          "type)")
+
+
+def check_extends(path, spec: dict, base_spec: dict) -> None:
+    """ValueError (one line, naming the spec file and the field) unless the spec can
+    extend the table base_spec defines: the rule's table ("converged": true), a
+    different out, the same seeds, rows among BASE's, the same config but for a larger
+    total_env_steps (the cap), the same tpn fields."""
+    where = f"table spec {path}"
+    base = spec["extends"]
+    if not spec.get("converged"):
+        raise ValueError(f"{where}: field 'converged': \"extends\" trains rows on under the "
+                         "convergence rule: expected \"converged\": true")
+    if Path(base).resolve() == Path(spec["out"]).resolve():
+        raise ValueError(f"{where}: field 'extends': {base} is the table's own out; "
+                         "expected another table's directory")
+    if spec["seeds"] != base_spec["seeds"]:
+        raise ValueError(f"{where}: field 'seeds': {spec['seeds']} differs from {base}'s "
+                         f"{base_spec['seeds']}; an extended table has the seeds of its base")
+    extra = [r for r in spec["rows"] if r not in base_spec["rows"]]
+    if extra:
+        raise ValueError(f"{where}: field 'rows': {extra[0]} is not a row of {base}")
+    if spec["tpn"] != base_spec["tpn"]:
+        raise ValueError(f"{where}: field 'tpn': {spec['tpn']} differs from {base}'s "
+                         f"{base_spec['tpn']}")
+    ours, theirs = dict(spec["config"]), dict(base_spec["config"])
+    cap = ours.pop("total_env_steps", None)
+    theirs.pop("total_env_steps", None)
+    if ours != theirs:
+        field = sorted(k for k in set(ours) | set(theirs) if ours.get(k) != theirs.get(k))[0]
+        raise ValueError(f"{where}: field 'config': {field} {ours.get(field)!r} differs from "
+                         f"{base}'s {theirs.get(field)!r}; an extended table changes only "
+                         "total_env_steps (the cap)")
+    budget = get_config("baseline", **base_spec["config"]).total_env_steps
+    if cap is None or cap <= budget:
+        raise ValueError(f"{where}: field 'config': total_env_steps {cap} is the cap of the "
+                         f"extended rows: expected more than {base}'s {budget:,}")
 
 
 def read_table_spec(out: Path) -> dict:

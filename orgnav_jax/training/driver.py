@@ -236,7 +236,8 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
     stage.chunk/stage.place take the stack (metrics then have that axis); stage.validate
     takes one member's runner. `stop`, after each val evaluation, gets every run's val
     records so far (a resume's earlier ones included): a reason ends the stage there,
-    with a checkpoint, so that a later --resume with a larger budget continues it. The
+    with a checkpoint, so that a later --resume with a larger budget continues it (a
+    resume with the same `stop` that stops at once trains nothing). The
     callers hold the run directories open."""
     primary = is_primary()
     if stage.steps_key is not None and (stacked or len(runners) != 1):
@@ -253,7 +254,8 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
     # each run's val records up to the resumed step (the stop rule's history)
     history = [[r for r in records if r["kind"] == "val" and r[stage.step_name] <= steps]
                for records in logged]
-    stopped = None
+    # a resume the rule already stops (it stopped there before) trains no further
+    stopped = stop(history) if stop is not None and resume and all(history) else None
     for m in members:      # after the restore: a failed resume changes nothing
         if primary:
             write_config(m.run_dir, m.cfg)
@@ -274,8 +276,11 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
                disable=not (progress and primary), file=sys.stderr)
     recent: dict[str, list] = {k: [] for k in stage.progress_keys}
     t_start, compile_s, timed, timed_steps = time.perf_counter(), None, [], 0.0
+    if stopped and primary:
+        print(f"{stage.name}: resumed at {steps:,} {stage.unit}s, stopped there: {stopped}",
+              file=sys.stderr, flush=True)
     try:
-        while not done(chunk, steps):
+        while not done(chunk, steps) and not stopped:
             t0 = time.perf_counter()
             new_runner, metrics = stage.chunk(runner)
             metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
