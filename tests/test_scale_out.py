@@ -395,6 +395,10 @@ def test_wall_time_estimate_from_the_timed_chunks():
     assert "(a whole run: 2.1 h;" in text
     three = wall_time_estimate(stage, chunk=3, seconds=[2.0, 2.0], members=3)
     assert "38,400 steps/s (3 runs together)" in three
+    capped = wall_time_estimate(stage, chunk=3, seconds=[2.0, 2.0], members=3, capped=True)
+    assert capped.endswith("checkpoints extra; the budget is a cap, the convergence rule may "
+                           "stop it sooner)")
+    assert not three.endswith("sooner)")
 
 
 # ------------------------------------------------------------------ config fields

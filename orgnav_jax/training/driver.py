@@ -207,9 +207,12 @@ ESTIMATE_AFTER = 3     # chunks of this process before the wall-time estimate (1
 
 
 def wall_time_estimate(stage: Stage, chunk: int, seconds: list[float], members: int,
-                       timed_steps: float | None = None, steps: int | None = None) -> str:
+                       timed_steps: float | None = None, steps: int | None = None,
+                       capped: bool = False) -> str:
     """The one-line estimate from the chunks timed after the compile chunk (with
-    stage.steps_key: timed_steps, the steps they took, and steps, the run's so far)."""
+    stage.steps_key: timed_steps, the steps they took, and steps, the run's so far);
+    capped: a stop rule may end the stage before its budget, which is then a cap."""
+    cap = "; the budget is a cap, the convergence rule may stop it sooner" if capped else ""
     per_chunk = float(np.mean(seconds))
     who = f" ({members} runs together)" if members > 1 else ""
     where = f"over chunks {chunk - len(seconds) + 1}-{chunk} (compile excluded)"
@@ -218,14 +221,14 @@ def wall_time_estimate(stage: Stage, chunk: int, seconds: list[float], members: 
         return (f"{stage.name}: {rate:,.0f} {stage.unit}s/s {where}: the remaining "
                 f"{max(stage.total - steps, 0):,} of {stage.total:,} {stage.unit}s take "
                 f"about {_duration(max(stage.total - steps, 0) / rate)} (a whole run: "
-                f"{_duration(stage.total / rate)}; evaluations and checkpoints extra)")
+                f"{_duration(stage.total / rate)}; evaluations and checkpoints extra{cap})")
     rate = stage.per_chunk * members / per_chunk
     left = (stage.num_chunks - chunk) * per_chunk
     whole = stage.num_chunks * per_chunk
     return (f"{stage.name}: {rate:,.0f} {stage.unit}s/s{who} {where}: the remaining "
             f"{stage.num_chunks - chunk} of {stage.num_chunks} chunks take about "
             f"{_duration(left)} (a whole run: {_duration(whole)}; evaluations and "
-            "checkpoints extra)")
+            f"checkpoints extra{cap})")
 
 
 def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path],
@@ -313,7 +316,7 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
             last = done(chunk, steps)
             if len(timed) == ESTIMATE_AFTER - 1 and not last and primary:
                 bar.write(wall_time_estimate(stage, chunk, timed, len(members), timed_steps,
-                                             steps), file=sys.stderr)
+                                             steps, capped=stop is not None), file=sys.stderr)
             if chunk % cfgs[0].eval_every_chunks == 0 or last:
                 for i, m in enumerate(members):
                     mine = member_runner(i)
