@@ -26,7 +26,7 @@ import dataclasses
 import shutil
 from pathlib import Path
 
-from orgnav_jax.tables.convergence import applicable, converged, read_val_curve, seed_mean_curve
+from orgnav_jax.tables.convergence import check_runs
 from orgnav_jax.tables.layout import existing_results, pretrain_dir, run_dir
 from orgnav_jax.tables.provenance import record_provenance
 from orgnav_jax.tables.rows import RANDOM, Row
@@ -36,7 +36,7 @@ from orgnav_jax.training.run_dir import LOCK_FILE
 CARRY, EXTEND, WAIT = "carry", "extend", "wait"
 # what a run that trains on leaves behind: its test results (api.test_run writes the
 # episodes beside them) and its TPN (trained again on the extended run)
-TEST_OUTPUTS = ("test_results.json", "episodes-*-test-*.json", "tpn", LOCK_FILE)
+TEST_OUTPUTS = ("test_results.json", "episodes-*-test-*.json", "tpn")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,14 +64,10 @@ def row_state(base: Path, row: str, seeds: list[int]) -> RowState:
     if get_config(row).savn:
         return RowState(CARRY, "not judged: SAVN trains one seed per program, the rule "
                                "judges seeds trained together")
-    try:
-        curve = seed_mean_curve([read_val_curve(run_dir(base, row, s)) for s in seeds])
+    try:           # ValueError: the rule cannot judge the runs (and says why)
+        v = check_runs([run_dir(base, row, s) for s in seeds])
     except ValueError as err:
         return RowState(CARRY, f"not judged: {err}")
-    why = applicable(curve)
-    if why:
-        return RowState(CARRY, f"not judged: {why}")
-    v = converged(curve)
     if v.converged:
         return RowState(CARRY, f"converged at B' = {v.budget:,}")
     return RowState(EXTEND, f"not converged at {v.env_steps:,} env steps")
@@ -81,8 +77,7 @@ def copy_row(base: Path, out: Path, row: str, seeds: list[int], carry: bool) -> 
     """Copy the runs of navigation row `row` (and a pre-trained row's pre-trainings) from
     table BASE into OUT: whole when `carry`, else without TEST_OUTPUTS. Runs already in
     OUT are left as they are. -> the run directories copied now."""
-    ignore = shutil.ignore_patterns(LOCK_FILE) if carry else \
-        shutil.ignore_patterns(*TEST_OUTPUTS)
+    ignore = shutil.ignore_patterns(LOCK_FILE, *(() if carry else TEST_OUTPUTS))
     copied = []
     for seed in seeds:
         pairs = [(run_dir(base, row, seed), run_dir(out, row, seed))]
