@@ -251,8 +251,9 @@ def table_row_rule(dirs: list[Path]) -> tuple[str, bool]:
 
 def table_convergence(out: Path, spec: dict) -> tuple[str, list[str]]:
     """A table whose spec has "converged": true -> its convergence.md (the rule on each
-    trained navigation row at its last val evaluation, from OUT/runs) and the rows that
-    have not converged by it (listed in claims.md)."""
+    trained navigation row at its last val evaluation, from OUT/runs) and the trained
+    rows that have not converged by it (listed in claims.md; a row with no runs yet is
+    not among them: its claims are not measured)."""
     lines = ["# The convergence rule on each trained row", "",
              "Written by `python experiments/claims.py OUT` from the runs' val curves "
              "(`--check` recomputes it); the spec's `\"converged\": true` asks every row "
@@ -274,6 +275,6 @@ def table_convergence(out: Path, spec: dict) -> tuple[str, list[str]]:
     for row, dirs in table_rows(out, spec).items():
         cells, ok = table_row_rule(dirs)
         lines.append(f"| {row} | {cells} |")
-        if not ok:
+        if dirs and not ok:
             not_converged.append(row)
     return "\n".join(lines) + "\n", not_converged
