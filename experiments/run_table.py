@@ -182,11 +182,12 @@ def train_row_population(row: Row, seeds: list[int], out: Path, overrides: dict,
     if extended:
         if todo:
             cfg = get_config(row.base, **{**overrides, "run_dir": str(out / "runs" / row.base)})
-            api.train_seeds(cfg, seeds, resume=True, progress=sys.stderr.isatty(),
-                            until_converged=True)
-            for s in seeds:
-                record_provenance(run_dir(out, row, s), "trained on under the convergence rule "
-                                  f"in one program with seeds {' '.join(map(str, seeds))}")
+            summaries = api.train_seeds(cfg, seeds, resume=True, progress=sys.stderr.isatty(),
+                                        until_converged=True)
+            if summaries[0]["chunks_run"]:   # not when the rule held at the checkpoint
+                for s in seeds:
+                    record_provenance(run_dir(out, row, s), "trained on under the convergence "
+                                      f"rule in one program with seeds {' '.join(map(str, seeds))}")
         return
     started = [is_run_dir(run_dir(out, row, s)) for s in todo]
     pre = {"pretrained": str(out / "runs" / f"{row.base}-pretrain")} if row.pretrains \

@@ -154,6 +154,7 @@ def test_the_trainer_stops_when_the_rule_holds_and_resumes_to_the_cap(tmp_path):
     again = run_population(stand_in_stage(plateau), runners, [cfg, cfg], dirs, resume=True,
                            progress=False, stop=cv.stop_when_converged())
     assert again[0]["env_steps"] == stopped_at and again[0]["stopped"] == out[0]["stopped"]
+    assert again[0]["chunks_run"] == 0 and out[0]["chunks_run"] == stopped_at // STEP
     assert cv.check_runs(dirs).evaluations == stopped_at // STEP
     # a checkpoint at the stop: --resume continues there, to the cap without the rule
     out = run_population(stand_in_stage(plateau), runners, [cfg, cfg], dirs, resume=True,

@@ -119,8 +119,12 @@ def test_run_table_extends_only_the_rows_not_converged(base, tmp_path, monkeypat
         Path(out).write_text(json.dumps(doc))
         return doc
 
-    monkeypatch.setattr(api, "train_seeds", lambda cfg, seeds, **kw: calls.append(
-        ("train_seeds", Path(cfg.run_dir).name, cfg.total_env_steps, list(seeds), kw)))
+    def train_seeds(cfg, seeds, **kw):
+        calls.append(("train_seeds", Path(cfg.run_dir).name, cfg.total_env_steps,
+                      list(seeds), kw))
+        return [{"chunks_run": 3} for _ in seeds]
+
+    monkeypatch.setattr(api, "train_seeds", train_seeds)
     monkeypatch.setattr(api, "train", lambda *a, **k: pytest.fail("trained one by one"))
     monkeypatch.setattr(api, "test_run", test_run)
     monkeypatch.setattr(api, "train_tpn", lambda cfg, **kw: calls.append(
@@ -146,6 +150,10 @@ def test_run_table_extends_only_the_rows_not_converged(base, tmp_path, monkeypat
     page = (out / "convergence.md").read_text()
     assert f"This table extends `{base}`" in page and f"to at most {100 * STEP:,} env" in page
     assert "| il | 0, 1 | 50 |" in page
+    did = [r["did"] for r in json.loads((out / "runs" / "il-s1" / "provenance.json")
+                                         .read_text())]
+    assert did.count("trained on under the convergence rule in one program with seeds "
+                     "0 1") == 1
 
 
 @pytest.mark.parametrize("change, message", [

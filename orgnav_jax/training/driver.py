@@ -100,7 +100,8 @@ class Stage:
 def run_stage(stage: Stage, runner, cfg, run_dir: Path, resume: bool, progress: bool = True,
               stop_after_chunks: int | None = None, stop: StopRule | None = None) -> dict:
     """Run (or resume) `stage` from `runner` in the open run directory -> summary dict:
-    run_dir, chunks, the step count under stage.step_name, best_val, compile and wall
+    run_dir, chunks (in all), chunks_run (by this call), the step count under
+    stage.step_name, best_val, compile and wall
     time, `stopped` (the stop rule's reason, or None) and the final runner.
     stop_after_chunks ends early (tests of kill-and-resume); `stop` see run_population."""
     return run_population(stage, [runner], [cfg], [Path(run_dir)], resume, progress,
@@ -254,6 +255,7 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
                 records += read_metrics(m.run_dir, stage.step_name, skip_broken=True)
     chunk, steps, runners = (_restore(members, runners, stacked, stage) if resume
                              else (0, 0, runners))
+    first_chunk = chunk
     # each run's val records up to the resumed step (the stop rule's history)
     history = [[r for r in records if r["kind"] == "val" and r[stage.step_name] <= steps]
                for records in logged]
@@ -350,6 +352,7 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
                 m.log.close()
     wall = time.perf_counter() - t_start
     return [{"run_dir": str(m.run_dir), stage.step_name: steps,
-             "chunks": chunk, "best_val": m.best, "compile_plus_first_chunk_s": compile_s,
+             "chunks": chunk, "chunks_run": chunk - first_chunk, "best_val": m.best,
+             "compile_plus_first_chunk_s": compile_s,
              "wall_s": wall, "stopped": stopped, "runner": member_runner(i)}
             for i, m in enumerate(members)]
