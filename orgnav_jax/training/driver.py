@@ -101,8 +101,8 @@ def run_stage(stage: Stage, runner, cfg, run_dir: Path, resume: bool, progress: 
               stop_after_chunks: int | None = None, stop: StopRule | None = None) -> dict:
     """Run (or resume) `stage` from `runner` in the open run directory -> summary dict:
     run_dir, chunks (in all), chunks_run (by this call), the step count under
-    stage.step_name, best_val, compile and wall
-    time, `stopped` (the stop rule's reason, or None) and the final runner.
+    stage.step_name, best_val, compile and wall time, `stopped` (the stop rule's reason,
+    or None) and the final runner.
     stop_after_chunks ends early (tests of kill-and-resume); `stop` see run_population."""
     return run_population(stage, [runner], [cfg], [Path(run_dir)], resume, progress,
                           stop_after_chunks, stacked=False, stop=stop)[0]
