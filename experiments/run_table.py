@@ -177,7 +177,7 @@ def train_row_population(row: Row, seeds: list[int], out: Path, overrides: dict,
     seed S starts from OUT/runs/<row>-pretrain-sS. extended: the row's runs, copied from
     the base table (extend.prepare), train on together until the convergence rule holds
     or the config's total_env_steps (the cap); a resume the rule already stops does no
-    more training."""
+    more training. A run's provenance records the training only when some ran."""
     todo = [s for s in seeds if not results_path(out, row, s).exists()]
     if extended:
         if todo:
@@ -198,7 +198,9 @@ def train_row_population(row: Row, seeds: list[int], out: Path, overrides: dict,
     if pre and not all(started):
         for s in todo:
             pretrain_seed(row, s, out, overrides)
-    api.train_seeds(cfg, todo, resume=all(started), progress=sys.stderr.isatty())
+    summaries = api.train_seeds(cfg, todo, resume=all(started), progress=sys.stderr.isatty())
+    if not summaries[0]["chunks_run"]:
+        return                          # a resume that found the runs trained to the end
     for s in todo:
         record_provenance(run_dir(out, row, s),
                           f"trained in one program with seeds {' '.join(map(str, todo))}"

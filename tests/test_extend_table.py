@@ -119,10 +119,12 @@ def test_run_table_extends_only_the_rows_not_converged(base, tmp_path, monkeypat
         Path(out).write_text(json.dumps(doc))
         return doc
 
+    chunks_run = 3
+
     def train_seeds(cfg, seeds, **kw):
         calls.append(("train_seeds", Path(cfg.run_dir).name, cfg.total_env_steps,
                       list(seeds), kw))
-        return [{"chunks_run": 3} for _ in seeds]
+        return [{"chunks_run": chunks_run} for _ in seeds]
 
     monkeypatch.setattr(api, "train_seeds", train_seeds)
     monkeypatch.setattr(api, "train", lambda *a, **k: pytest.fail("trained one by one"))
@@ -150,6 +152,16 @@ def test_run_table_extends_only_the_rows_not_converged(base, tmp_path, monkeypat
     page = (out / "convergence.md").read_text()
     assert f"This table extends `{base}`" in page and f"to at most {100 * STEP:,} env" in page
     assert "| il | 0, 1 | 50 |" in page
+    did = [r["did"] for r in json.loads((out / "runs" / "il-s1" / "provenance.json")
+                                         .read_text())]
+    assert did.count("trained on under the convergence rule in one program with seeds "
+                     "0 1") == 1
+    # killed after training, before its tests: the rerun trains nothing, records nothing
+    chunks_run = 0
+    for seed in (0, 1):
+        (out / "runs" / f"il-s{seed}" / "test_results.json").unlink()
+    run_table.main(["--spec", str(spec_path)])
+    assert calls[5][:2] == ("train_seeds", "il")
     did = [r["did"] for r in json.loads((out / "runs" / "il-s1" / "provenance.json")
                                          .read_text())]
     assert did.count("trained on under the convergence rule in one program with seeds "

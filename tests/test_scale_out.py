@@ -267,10 +267,11 @@ def test_run_table_trains_the_seeds_of_a_row_in_one_program(tmp_path, tiny_dir, 
     monkeypatch.setattr(api, "train", lambda cfg, resume=False, **kw: real_train(
         cfg, resume=resume, **kw) if resume else pytest.fail("trained one by one"))
     out = tmp_path / "table"
-    run_table.main(["--rows", "baseline", "--seeds", "0", "1", "--population", "--out",
-                    str(out), "--scenes-dir", tiny_dir, "--num-envs", "16",
-                    "--rollout-len", "8", "--updates-per-chunk", "2", "--total-env-steps",
-                    "512", "--eval-every-chunks", "2", "--eval-episodes-per-room-type", "4"])
+    args = ["--rows", "baseline", "--seeds", "0", "1", "--population", "--out", str(out),
+            "--scenes-dir", tiny_dir, "--num-envs", "16", "--rollout-len", "8",
+            "--updates-per-chunk", "2", "--total-env-steps", "512", "--eval-every-chunks",
+            "2", "--eval-episodes-per-room-type", "4"]
+    run_table.main(args)
     assert calls == [[0, 1]]
     results = json.loads((out / "results.json").read_text())
     assert sorted(results["baseline"]) == ["0", "1"]
@@ -279,6 +280,16 @@ def test_run_table_trains_the_seeds_of_a_row_in_one_program(tmp_path, tiny_dir, 
         assert loop_config(out / "runs" / f"baseline-s{seed}").seed == seed
         assert [r["env_steps"] for r in records(out / "runs" / f"baseline-s{seed}",
                                                 "train")] == [256, 512]
+    # killed after training, before its tests: the rerun trains nothing and says so
+    for seed in (0, 1):
+        (out / "runs" / f"baseline-s{seed}" / "test_results.json").unlink()
+    run_table.main(args)
+    assert calls == [[0, 1], [0, 1]]
+    for seed in (0, 1):
+        did = [r["did"] for r in json.loads(
+            (out / "runs" / f"baseline-s{seed}" / "provenance.json").read_text())]
+        assert did.count("trained in one program with seeds 0 1") == 1, did
+        assert (out / "runs" / f"baseline-s{seed}" / "test_results.json").exists()
 
 
 def loop_config(run_dir):

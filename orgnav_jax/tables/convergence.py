@@ -225,8 +225,8 @@ def converged_at(curve: SeedMeanCurve, tolerance: float = TOLERANCE) -> Verdict 
 
 def check_runs(run_dirs: Sequence[str | Path]) -> Verdict:
     """The rule on the runs of one row (their metrics.jsonl), at their last shared
-    evaluation; ValueError (one line) where it cannot judge them (applicable, no shared
-    evaluation step, a malformed metrics.jsonl)."""
+    evaluation; ValueError (one line) where it cannot judge them (too few seeds or val
+    episodes: `applicable`; no evaluation step in common; a malformed metrics.jsonl)."""
     return converged(seed_mean_curve([read_val_curve(d) for d in run_dirs]))
 
 
