@@ -1,6 +1,7 @@
 """The README and docs/ read as reference: the README's python blocks run as written (in a
 fresh directory), its size and top section stay small, every command of its commands table
-answers `--help`, every relative link in the README and docs/ resolves, and no words about
+answers `--help`, its headline tables show the committed tables' numbers, every relative
+link in the README and docs/ resolves, and no words about
 the project's own work periods or borrowed machines appear in the README, docs/ (outside
 docs/history/, which keeps dated accounts) or the code's comments and docstrings."""
 
@@ -157,3 +158,63 @@ def test_no_work_period_or_loan_words_outside_history():
         for n, line in enumerate(path.read_text().splitlines(), 1):
             bad += [f"{path.relative_to(ROOT)}:{n}: {w!r}" for w in forbidden_in(line)]
     assert not bad, "\n".join(bad)
+
+
+# The README's headline tables: which committed table a column pair (success, SPL) is
+# read from, keyed by the header's first cell and the success column's header; and which
+# row of table.md a README row shows.
+HEADLINE_COLUMNS = {("row", "small: success"): "table_5m",
+                    ("row", "calibrated: success"): "table_calibrated",
+                    ("row, at its convergence", "success"): "table_converged_ext"}
+HEADLINE_ROWS = {"Random": "random", "WE": "we", "D-SP": "dsp", "SAVN": "savn",
+                 "D-SAVN": "dsavn", "Baseline": "baseline",
+                 "Baseline + TPN": "baseline+tpn@1e-4", "Baseline + IL": "il",
+                 "Baseline + ORG": "org", "ORG + IL (w/o TPN)": "org_il",
+                 "ORG + TPN (w/o IL)": "org+tpn@1e-4", "IL + TPN (w/o ORG)": "il+tpn@1e-4",
+                 "ORG + IL + TPN (full model)": "org_il+tpn@1e-4",
+                 "full model, TPN on every step": "org_il+tpn_all@1e-4",
+                 "full model, TPN random target": "org_il+tpn_random@1e-4",
+                 "VTNet (pre-trained on the expert's actions)": "vtnet †"}
+
+
+def markdown_tables(text: str) -> list[list[list[str]]]:
+    """Each table of `text` as rows of stripped cells (the |---| line dropped)."""
+    tables, current = [], []
+    for line in text.splitlines() + [""]:
+        if line.startswith("|"):
+            if not set(line) <= set("|- "):
+                current.append([c.strip().strip("*").strip()
+                                for c in line.strip().strip("|").split("|")])
+        elif current:
+            tables.append(current)
+            current = []
+    return tables
+
+
+def test_readme_headline_numbers_are_the_committed_tables():
+    """Every success ± std and SPL the README's headline tables show is the row's entry in
+    its committed table.md (which `claims.py --check` recomputes from the runs): a number
+    copied wrong, or left behind when a table changed, fails here."""
+    text = README.read_text()
+    section = text[text.index("## Headline results"):text.index("## Documentation")]
+    results = ROOT / "experiments" / "results"
+    checked = 0
+    for header, *body in markdown_tables(section):
+        for col, name in enumerate(header):
+            table = HEADLINE_COLUMNS.get((header[0], name))
+            if table is None:
+                continue
+            entries = {cells[0]: cells for cells in markdown_tables(
+                (results / table / "table.md").read_text())[0][1:]}
+            for cells in body:
+                assert cells[0] in HEADLINE_ROWS, f"README row {cells[0]!r} has no table row"
+                if cells[col] == "-":
+                    continue
+                key = HEADLINE_ROWS[cells[0]]
+                assert key in entries, f"{table}/table.md has no row {key!r}"
+                success, spl = entries[key][2], entries[key][3]
+                assert (cells[col], cells[col + 1]) == (success, spl.split(" ±")[0]), (
+                    f"README {cells[0]!r} ({name}): {cells[col]}, {cells[col + 1]}; "
+                    f"{table}/table.md: {success}, {spl}")
+                checked += 1
+    assert checked >= 30, f"only {checked} README numbers found: did the tables move?"
