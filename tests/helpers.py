@@ -1,5 +1,5 @@
 """Shared by the test modules and tests/scale_worker.py (a subprocess script): the small
-run every trainer test uses, the trained-vs-random check of the learning tests, and a
+run every trainer test uses, a chunk that reports a non-finite loss, the trained-vs-random check of the learning tests, and a
 results JSON made from per-episode success flags.
 (pytest puts tests/ on sys.path: `from helpers import ...`.)"""
 
@@ -35,6 +35,32 @@ def small_cfg(scenes_dir, run_dir, **kw):
     """The TrainConfig of small_options on the tiny preset."""
     from orgnav_jax.training.config import get_config
     return get_config("tiny", **small_options(scenes_dir, run_dir, **kw))
+
+
+def poison_chunk(monkeypatch, at: int, nan_params: bool = False) -> None:
+    """Make the trainer's chunk number `at` (1-based, counted from the next call) report a
+    non-finite loss, and with nan_params also return NaN parameters. The cached chunk is
+    wrapped, not cleared: other tests keep its compile."""
+    import jax
+    import jax.numpy as jnp
+    from orgnav_jax.training import loop
+    real = loop.cached_train_chunk
+
+    def poisoned(*args, **kw):
+        optimizer, chunk_fn = real(*args, **kw)
+        calls = [0]
+
+        def wrapped(runner, scenes):
+            calls[0] += 1
+            runner, metrics = chunk_fn(runner, scenes)
+            if calls[0] != at:
+                return runner, metrics
+            if nan_params:
+                runner = runner.replace(params=jax.tree_util.tree_map(
+                    lambda x: x * jnp.nan, runner.params))
+            return runner, dict(metrics, loss_finite=jnp.bool_(False))
+        return optimizer, wrapped
+    monkeypatch.setattr(loop, "cached_train_chunk", poisoned)
 
 
 def trained_and_random_success(run_dir, scenes_dir, split: str) -> tuple[float, float]:

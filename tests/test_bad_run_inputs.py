@@ -25,7 +25,7 @@ from orgnav_jax.training import loop
 from orgnav_jax.training.config import load_config
 from orgnav_jax.training.run_dir import LOCK_FILE, RunLock
 
-from helpers import CHUNK, small_cfg, small_options
+from helpers import CHUNK, poison_chunk, small_cfg, small_options
 
 
 
@@ -282,19 +282,7 @@ def test_user_errors_of_train_are_one_line(tmp_path, tiny_dir, cli_error):
 
 def test_a_non_finite_loss_is_a_one_line_error_that_keeps_the_checkpoints(
         tmp_path, tiny_dir, monkeypatch, cli_error):
-    real = loop.cached_train_chunk      # wrapped, not cleared: other tests keep its compile
-
-    def poisoned(*args, **kw):
-        optimizer, chunk_fn = real(*args, **kw)
-        calls = [0]
-
-        def wrapped(runner, scenes):
-            calls[0] += 1
-            runner, metrics = chunk_fn(runner, scenes)
-            return runner, dict(metrics, loss_finite=np.bool_(calls[0] < 3))
-        return optimizer, wrapped
-
-    monkeypatch.setattr(loop, "cached_train_chunk", poisoned)
+    poison_chunk(monkeypatch, at=3)
     msg = cli_error(train_cli.main, argv_of(tiny_dir, tmp_path / "run"))
     assert "non-finite loss in chunk 3" in msg
     assert sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir()) == \

@@ -19,7 +19,7 @@ from orgnav_jax.training.config import get_config, load_config
 from orgnav_jax.training.losses import gae
 from orgnav_jax.training.runs import load_run_policy
 
-from helpers import small_cfg, trained_and_random_success
+from helpers import poison_chunk, small_cfg, trained_and_random_success
 
 
 def leaves(tree):
@@ -90,22 +90,7 @@ def test_interrupted_save_leaves_the_previous_checkpoint_loadable(tmp_path, tiny
 
 def test_nan_loss_stops_with_a_clear_message_and_keeps_the_last_checkpoint(
         tmp_path, tiny_dir, monkeypatch):
-    real = loop.cached_train_chunk      # wrapped, not cleared: other tests keep its compile
-
-    def poisoned(*args, **kw):
-        optimizer, chunk_fn = real(*args, **kw)
-        calls = [0]
-
-        def wrapped(runner, scenes):
-            calls[0] += 1
-            runner, metrics = chunk_fn(runner, scenes)
-            if calls[0] == 3:
-                bad = jax.tree_util.tree_map(lambda x: x * jnp.nan, runner.params)
-                return runner.replace(params=bad), dict(metrics, loss_finite=jnp.bool_(False))
-            return runner, metrics
-        return optimizer, wrapped
-
-    monkeypatch.setattr(loop, "cached_train_chunk", poisoned)
+    poison_chunk(monkeypatch, at=3, nan_params=True)
     cfg = small_cfg(tiny_dir, tmp_path / "run")
     with pytest.raises(NonFiniteLoss, match="non-finite loss in chunk 3.*last good "
                                                  "checkpoint"):
