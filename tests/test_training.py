@@ -222,3 +222,12 @@ def test_the_progress_bar_shows_the_last_val(tmp_path, tiny_dir, capsys, monkeyp
     assert summary["best_val"]["success"] > 0.1              # the last eval is the best
     shown = re.findall(r"best_val=([0-9.]+)", capsys.readouterr().err)
     assert shown and shown[-1] == f"{summary['best_val']['success']:.3f}", shown[-3:]
+
+
+@pytest.mark.parametrize("preset, label", [("baseline", "train baseline"),
+                                           ("il", "train baseline+il"),
+                                           ("org_il", "train org+il"),
+                                           ("dsavn", "train baseline+savn")])
+def test_progress_names_the_model_and_what_trains_it(preset, label):
+    """The IL row's progress lines said "train baseline" (its model): they name IL too."""
+    assert loop.stage_label(get_config(preset)) == label

@@ -1,6 +1,6 @@
 """The host loop both training stages share: jitted chunks, logs, val, best, checkpoints.
 
-    stage = Stage(name="train baseline", chunk=..., validate=..., ...)
+    stage = Stage(name="train baseline+il", chunk=..., validate=..., ...)
     summary = run_stage(stage, runner, cfg, run_dir, resume, progress)
     summaries = run_population(stage, runners, cfgs, run_dirs, resume)   # seeds in one program
 
@@ -73,7 +73,7 @@ class Stage:
         per_chunk is the most a chunk can take, the log's step, the progress bar and the
         checkpoints' steps are the running count. One run only (no population).
     """
-    name: str                      # progress-bar label, e.g. "train baseline"
+    name: str                      # progress-bar label, e.g. "train baseline+il"
     unit: str                      # "step" or "ep"
     step_name: str                 # the log's step field: "env_steps" or "episodes"
     rate_key: str                  # the train record's speed: "steps_per_s", "episodes_per_s"

@@ -142,6 +142,13 @@ def train_runs(cfgs: list[TrainConfig], resume: bool, progress: bool,
                               stop_after_chunks, stacked=len(cfgs) > 1, stop=stop)
 
 
+def stage_label(cfg: TrainConfig) -> str:
+    """The progress label of a navigation run: its model, and what trains it besides A2C
+    (e.g. "train baseline+il" for the IL row, "train org+il+savn")."""
+    return (f"train {cfg.model}" + ("+il" if cfg.il != "none" else "")
+            + ("+savn" if cfg.savn else ""))
+
+
 def nav_stage(cfgs: list[TrainConfig], scenes, mesh, resume: bool) -> tuple[Stage, list]:
     """Stage 1 as the host loop's Stage, and one runner per config (several: a population,
     the chunk vmapped over the stacked runners), on the train and val splits of the
@@ -177,7 +184,7 @@ def nav_stage(cfgs: list[TrainConfig], scenes, mesh, resume: bool) -> tuple[Stag
             place = lambda runner: scale.place(runner, scale.runner_shardings(  # sharded
                 runner, mesh, len(cfgs) > 1))
     stage = Stage(
-        name=f"train {cfg.model}" + ("+savn" if cfg.savn else ""), unit="step",
+        name=stage_label(cfg), unit="step",
         step_name="env_steps", rate_key="steps_per_s",
         per_chunk=cfg.updates_per_chunk * cfg.steps_per_update,
         total=cfg.total_env_steps if cfg.savn else cfg.num_updates * cfg.steps_per_update,
