@@ -56,10 +56,14 @@ def test_readme_size_first_commands_and_top_section():
     assert "## Headline results" in lines
 
 
+def readme_section(title: str) -> str:
+    """The README's text under `## title`, up to the next `## ` heading."""
+    return README.read_text().split(f"\n## {title}\n", 1)[1].split("\n## ", 1)[0]
+
+
 def commands_table() -> list[str]:
     """The commands (first column, one code span each) of the README's commands table."""
-    text = README.read_text()
-    section = text.split("## Commands", 1)[1].split("\n## ", 1)[0]
+    section = readme_section("Commands")
     rows = [line for line in section.splitlines() if line.startswith("| `")]
     return [re.match(r"\| `(.+?)` \|", row)[1].replace("\\|", "|") for row in rows]
 
@@ -195,8 +199,7 @@ def test_readme_headline_numbers_are_the_committed_tables():
     """Every success ± std and SPL the README's headline tables show is the row's entry in
     its committed table.md (which `claims.py --check` recomputes from the runs): a number
     copied wrong, or left behind when a table changed, fails here."""
-    text = README.read_text()
-    section = text[text.index("## Headline results"):text.index("## Documentation")]
+    section = readme_section("Headline results")
     results = ROOT / "experiments" / "results"
     checked = 0
     for header, *body in markdown_tables(section):

@@ -229,5 +229,6 @@ def test_the_progress_bar_shows_the_last_val(tmp_path, tiny_dir, capsys, monkeyp
                                            ("org_il", "train org+il"),
                                            ("dsavn", "train baseline+savn")])
 def test_progress_names_the_model_and_what_trains_it(preset, label):
-    """The IL row's progress lines said "train baseline" (its model): they name IL too."""
+    """Progress lines name the model and IL or SAVN where they train it, so that the IL
+    row's lines differ from the Baseline's."""
     assert loop.stage_label(get_config(preset)) == label

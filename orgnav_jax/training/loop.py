@@ -144,7 +144,7 @@ def train_runs(cfgs: list[TrainConfig], resume: bool, progress: bool,
 
 def stage_label(cfg: TrainConfig) -> str:
     """The progress label of a navigation run: its model, and what trains it besides A2C
-    (e.g. "train baseline+il" for the IL row, "train org+il+savn")."""
+    (e.g. "train baseline+il" for the IL row, "train we+savn" for SAVN)."""
     return (f"train {cfg.model}" + ("+il" if cfg.il != "none" else "")
             + ("+savn" if cfg.savn else ""))
 
