@@ -7,6 +7,7 @@ test."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -23,13 +24,15 @@ ROWS = ["random", "baseline", "il", "org", "savn", "baseline+tpn@1e-4", "il+tpn@
 def write_run(run: Path, success: list[float], first_step: int = STEP, tested: bool = True,
               rng=np.random.default_rng(0)) -> None:
     """A run directory: val success every STEP env steps (from first_step), a checkpoint
-    placeholder, and when `tested` its test results, evaluation episodes and a TPN's."""
+    placeholder at the last of them, and when `tested` its test results, evaluation
+    episodes and a TPN's."""
     run.mkdir(parents=True)
     records = [{"kind": "val", "env_steps": first_step + i * STEP, "episodes": 1000,
                 "success": s} for i, s in enumerate(success)]
     (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
-    (run / "checkpoints" / "2048").mkdir(parents=True)
-    (run / "checkpoints" / "2048" / "state").write_text("weights")
+    last = run / "checkpoints" / str(records[-1]["env_steps"])
+    last.mkdir(parents=True)
+    (last / "state").write_text("weights")
     if tested:
         results = json.dumps(fake_results(rng.random(40) < 0.5, rng))
         (run / "test_results.json").write_text(results)
@@ -86,7 +89,8 @@ def test_rows_are_carried_extended_or_left_by_the_rule(base, tmp_path):
         assert {k: v for k, v in snapshot(out / "runs" / f"baseline-s{seed}").items()
                 if k != "provenance.json"} == kept
         il = snapshot(out / "runs" / f"il-s{seed}")
-        assert sorted(il) == ["checkpoints/2048/state", "metrics.jsonl", "provenance.json"]
+        assert sorted(il) == [f"checkpoints/{50 * STEP}/state", "metrics.jsonl",
+                              "provenance.json"]
         did = json.loads(il["provenance.json"])[-1]["did"]
         assert did == (f"copied from {base}/runs/il-s{seed} without its test results and "
                        "TPN, to train on under the convergence rule")
@@ -98,6 +102,42 @@ def test_rows_are_carried_extended_or_left_by_the_rule(base, tmp_path):
     (out / "runs" / "il-s0" / "metrics.jsonl").write_text("trained on\n")
     extend.prepare(base, out, ROWS, [0, 1])
     assert (out / "runs" / "il-s0" / "metrics.jsonl").read_text() == "trained on\n"
+
+
+def test_a_row_to_extend_waits_for_the_checkpoint_it_trains_on_from(base, tmp_path):
+    """A checkout without BASE's checkpoints: a row not converged is left (training on
+    from step 0 would be another experiment), nothing copied; once its runs are in OUT,
+    BASE's checkpoints are not needed."""
+    out = tmp_path / "ext"
+    lost = base / "runs" / "il-s1" / "checkpoints"
+    (lost / str(50 * STEP)).rename(lost / f"{50 * STEP}.orbax-checkpoint-tmp-1")  # unfinished
+    state = extend.prepare(base, out, ROWS, [0, 1])["il"]
+    assert state == extend.RowState("wait", f"not converged at {50 * STEP:,} env steps, but "
+                                            f"{lost} has no checkpoint of that step to "
+                                            f"train on from (newest: none); restore it")
+    assert not (out / "runs" / "il-s0").exists()
+    (lost / "2048").mkdir()
+    assert "(newest: 2,048)" in extend.row_state(base, "il", [0, 1], out).why
+    for seed in (0, 1):
+        extend.copy_row(base, out, "il", [seed], carry=False)
+    assert extend.row_state(base, "il", [0, 1], out).action == "extend"
+
+
+def test_an_extended_run_without_checkpoints_is_not_trained_again_from_zero(
+        base, tmp_path, monkeypatch, cli_error):
+    """Its copy in OUT lost its checkpoints (a new checkout): a one-line error, exit 2,
+    nothing trained."""
+    run_table = experiment_script("run_table")
+    monkeypatch.setattr(api, "train_seeds", lambda *a, **k: pytest.fail("trained"))
+    out = tmp_path / "ext"
+    extend.prepare(base, out, ROWS, [0, 1])
+    shutil.rmtree(out / "runs" / "il-s1" / "checkpoints")
+    spec_path = tmp_path / "ext.json"
+    spec_path.write_text(json.dumps(spec_of(out, 100 * STEP, extends=str(base))))
+    line = cli_error(run_table.main, ["--spec", spec_path])
+    assert line == (f"error: {out}/runs/il-s1: no checkpoint to train on from (the extended "
+                    f"table continues its runs); restore its checkpoints, or remove the run "
+                    f"directory to copy it again from the base table"), line
 
 
 def test_run_table_extends_only_the_rows_not_converged(base, tmp_path, monkeypatch, capsys):

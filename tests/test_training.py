@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -51,6 +52,21 @@ def test_kill_and_resume_equals_an_uninterrupted_run(tmp_path, tiny_dir):
     for a, b in zip(leaves(full["runner"]), leaves(resumed["runner"])):
         np.testing.assert_array_equal(a, b)
     log = [json.loads(line) for line in (tmp_path / "killed" / "metrics.jsonl").open()]
+    assert [r["env_steps"] for r in log if r["kind"] == "train"] == [256, 512, 768, 1024]
+
+
+def test_a_resume_without_checkpoints_says_it_starts_again(tmp_path, tiny_dir, capsys):
+    """Killed before its first checkpoint, or its checkpoints lost: the resume trains
+    from step 0, says so, and its log holds each step once."""
+    cfg = small_cfg(tiny_dir, tmp_path / "run")
+    loop.train(cfg, progress=False, stop_after_chunks=2)
+    shutil.rmtree(tmp_path / "run" / "checkpoints")
+    capsys.readouterr()
+    loop.train(cfg, resume=True, progress=False)
+    err = capsys.readouterr().err
+    assert (f"train baseline: resume: no checkpoint in {tmp_path / 'run' / 'checkpoints'}; "
+            f"training starts again from step 0 (its metrics.jsonl's") in err, err
+    log = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
     assert [r["env_steps"] for r in log if r["kind"] == "train"] == [256, 512, 768, 1024]
 
 

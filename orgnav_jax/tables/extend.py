@@ -6,13 +6,15 @@ tested) is judged by the convergence rule on its own val curves and
   rule says it has converged, or cannot judge it (SAVN: one seed per program);
 - extended when the rule says it has not converged: its run directories are copied into
   OUT without their test results and TPN, to train on (run_table.py) under the trainer's
-  stop criterion (--until-converged), the spec's total_env_steps being the cap;
-- left for a later run while BASE is still training it.
+  stop criterion (--until-converged), the spec's total_env_steps being the cap, from
+  their checkpoint at BASE's last evaluation;
+- left for a later run while BASE is still training it, or while a run to copy lacks
+  that checkpoint (a checkout without BASE's checkpoints: restore them first).
 
 (tables/spec.py checks the spec's fields against BASE's.)
 
     states = prepare(base, out, rows, seeds)   # {row: RowState}, runs copied into OUT
-    state = row_state(base, "baseline", seeds)  # carry | extend | wait, and why
+    state = row_state(base, "baseline", seeds, out)  # carry | extend | wait, and why
     copy_row(base, out, "baseline", seeds, carry=False)
 
 BASE's files are only read. A copy is made in a temporary directory beside its target and
@@ -31,7 +33,7 @@ from orgnav_jax.tables.layout import existing_results, pretrain_dir, run_dir
 from orgnav_jax.tables.provenance import record_provenance
 from orgnav_jax.tables.rows import RANDOM, Row
 from orgnav_jax.training.config import get_config
-from orgnav_jax.training.run_dir import LOCK_FILE
+from orgnav_jax.training.run_dir import LOCK_FILE, saved_steps
 
 CARRY, EXTEND, WAIT = "carry", "extend", "wait"
 # what a run that trains on leaves behind: its test results (api.test_run writes the
@@ -54,8 +56,10 @@ class RowState:
             WAIT: "left for a later run"}[self.action] + f" ({self.why})"
 
 
-def row_state(base: Path, row: str, seeds: list[int]) -> RowState:
-    """What to do with navigation row `row` (a base row, or random) of table BASE."""
+def row_state(base: Path, row: str, seeds: list[int], out: Path | None = None) -> RowState:
+    """What to do with navigation row `row` (a base row, or random) of table BASE; a row
+    to extend waits while a run not yet copied into OUT lacks its checkpoint at BASE's
+    last evaluation (training on from step 0 would silently be another experiment)."""
     missing = [s for s in seeds if existing_results(base, row, s) is None]
     if missing:
         return RowState(WAIT, f"seed {missing[0]} not tested in {base} yet")
@@ -70,6 +74,15 @@ def row_state(base: Path, row: str, seeds: list[int]) -> RowState:
         return RowState(CARRY, f"not judged: {err}")
     if v.converged:
         return RowState(CARRY, f"converged at B' = {v.budget:,}")
+    for seed in seeds:
+        run = run_dir(base, row, seed)
+        if (out is None or not run_dir(out, row, seed).exists()) and \
+                v.env_steps not in saved_steps(run):
+            newest = saved_steps(run)
+            return RowState(WAIT, f"not converged at {v.env_steps:,} env steps, but "
+                                  f"{run / 'checkpoints'} has no checkpoint of that step "
+                                  f"to train on from (newest: "
+                                  f"{f'{newest[-1]:,}' if newest else 'none'}); restore it")
     return RowState(EXTEND, f"not converged at {v.env_steps:,} env steps")
 
 
@@ -104,7 +117,7 @@ def prepare(base: Path, out: Path, rows: list[str], seeds: list[int]) -> dict[st
     results when extended; nothing for a row BASE has not finished)."""
     states = {}
     for base_row in dict.fromkeys(Row.of(name).base for name in rows):
-        state = states[base_row] = row_state(base, base_row, seeds)
+        state = states[base_row] = row_state(base, base_row, seeds, out)
         if state.action != WAIT:
             copy_row(base, out, base_row, seeds, carry=state.action == CARRY)
     return states

@@ -256,6 +256,13 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
     chunk, steps, runners = (_restore(members, runners, stacked, stage) if resume
                              else (0, 0, runners))
     first_chunk = chunk
+    for m, records in zip(members, logged):
+        if resume and not steps and records and primary:   # say so: its log is dropped
+            print(f"{stage.name}: resume: no checkpoint in {m.run_dir / 'checkpoints'}; "
+                  f"training starts again from step 0 (its metrics.jsonl's "
+                  f"{len(records)} records, to {stage.step_name} "
+                  f"{max(r[stage.step_name] for r in records):,}, are dropped)",
+                  file=sys.stderr, flush=True)
     # each run's val records up to the resumed step (the stop rule's history)
     history = [[r for r in records if r["kind"] == "val" and r[stage.step_name] <= steps]
                for records in logged]
