@@ -412,6 +412,21 @@ def test_wall_time_estimate_from_the_timed_chunks():
     assert not three.endswith("sooner)")
 
 
+def test_the_estimate_with_evaluations_from_two_evaluation_marks():
+    from orgnav_jax.training.driver import Stage, cycle_estimate
+    stage = Stage(name="train org", unit="step", step_name="env_steps",
+                  rate_key="steps_per_s", per_chunk=25_600, total=22_016_000,
+                  chunk=None, summarize=None, validate=None, score_keys=("success",),
+                  best_keys=("success",))
+    # 8 chunks and an evaluation in 80 s: 10 s a chunk, 5 runs
+    text = cycle_estimate(stage, [(8, 100.0), (16, 180.0)], members=5)
+    assert text == ("train org: 12,800 steps/s (5 runs together) with evaluations and "
+                    "checkpoints, over chunks 9-16: the remaining 844 of 860 chunks take "
+                    "about 2.3 h")
+    assert cycle_estimate(stage, [(8, 100.0), (16, 180.0)], 5, capped=True).endswith(
+        "2.3 h; the budget is a cap, the convergence rule may stop it sooner")
+
+
 # ------------------------------------------------------------------ config fields
 
 def test_scale_out_config_fields_and_older_configs(tmp_path):

@@ -57,8 +57,9 @@ def test_kill_and_resume_equals_an_uninterrupted_run(tmp_path, tiny_dir):
 
 def test_a_resume_without_checkpoints_says_it_starts_again(tmp_path, tiny_dir, capsys):
     """Killed before its first checkpoint, or its checkpoints lost: the resume trains
-    from step 0, says so, and its log holds each step once."""
-    cfg = small_cfg(tiny_dir, tmp_path / "run")
+    from step 0, says so, and its log holds each step once. After its second val
+    evaluation the run estimates its time with evaluations and checkpoints."""
+    cfg = small_cfg(tiny_dir, tmp_path / "run", eval_every_chunks=1)
     loop.train(cfg, progress=False, stop_after_chunks=2)
     shutil.rmtree(tmp_path / "run" / "checkpoints")
     capsys.readouterr()
@@ -66,6 +67,8 @@ def test_a_resume_without_checkpoints_says_it_starts_again(tmp_path, tiny_dir, c
     err = capsys.readouterr().err
     assert (f"train baseline: resume: no checkpoint in {tmp_path / 'run' / 'checkpoints'}; "
             f"training starts again from step 0 (its metrics.jsonl's") in err, err
+    assert ("steps/s with evaluations and checkpoints, over chunks 2-2: the remaining 2 of "
+            "4 chunks take about") in err, err
     log = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
     assert [r["env_steps"] for r in log if r["kind"] == "train"] == [256, 512, 768, 1024]
 

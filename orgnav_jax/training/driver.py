@@ -232,6 +232,20 @@ def wall_time_estimate(stage: Stage, chunk: int, seconds: list[float], members: 
             f"checkpoints extra{cap})")
 
 
+def cycle_estimate(stage: Stage, marks: list[tuple[int, float]], members: int,
+                   capped: bool = False) -> str:
+    """The one-line estimate with evaluations and checkpoints, from two (chunk, time)
+    marks taken after consecutive val evaluations (the first one's compile excluded)."""
+    (c0, t0), (c1, t1) = marks
+    per_chunk = (t1 - t0) / (c1 - c0)
+    who = f" ({members} runs together)" if members > 1 else ""
+    cap = "; the budget is a cap, the convergence rule may stop it sooner" if capped else ""
+    return (f"{stage.name}: {stage.per_chunk * members / per_chunk:,.0f} {stage.unit}s/s"
+            f"{who} with evaluations and checkpoints, over chunks {c0 + 1}-{c1}: the "
+            f"remaining {stage.num_chunks - c1} of {stage.num_chunks} chunks take about "
+            f"{_duration((stage.num_chunks - c1) * per_chunk)}{cap}")
+
+
 def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path],
                    resume: bool, progress: bool = True, stop_after_chunks: int | None = None,
                    stacked: bool = True, stop: StopRule | None = None) -> list[dict]:
@@ -288,6 +302,7 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
                disable=not (progress and primary), file=sys.stderr)
     recent: dict[str, list] = {k: [] for k in stage.progress_keys}
     t_start, compile_s, timed, timed_steps = time.perf_counter(), None, [], 0.0
+    marks = []                     # (chunk, time) after each val evaluation and its saves
     if stopped and primary:
         print(f"{stage.name}: resumed at {steps:,} {stage.unit}s, stopped there: {stopped}",
               file=sys.stderr, flush=True)
@@ -326,7 +341,8 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
             if len(timed) == ESTIMATE_AFTER - 1 and not last and primary:
                 bar.write(wall_time_estimate(stage, chunk, timed, len(members), timed_steps,
                                              steps, capped=stop is not None), file=sys.stderr)
-            if chunk % cfgs[0].eval_every_chunks == 0 or last:
+            evaluated = chunk % cfgs[0].eval_every_chunks == 0 or last
+            if evaluated:
                 for i, m in enumerate(members):
                     mine = member_runner(i)
                     val = stage.validate(mine)
@@ -349,6 +365,11 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
             if chunk % cfgs[0].checkpoint_every_chunks == 0 or last:
                 for i, m in enumerate(members):
                     m.ckpt.save(step, member_runner(i), {"chunk": chunk, "best": m.best})
+            if evaluated:
+                marks.append((chunk, time.perf_counter()))
+                if len(marks) == 2 and not last and not varying and primary:
+                    bar.write(cycle_estimate(stage, marks, len(members), stop is not None),
+                              file=sys.stderr)
             if (stop_after_chunks is not None and chunk >= stop_after_chunks and not last) or \
                     stopped:
                 break
