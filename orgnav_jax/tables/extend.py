@@ -76,13 +76,12 @@ def row_state(base: Path, row: str, seeds: list[int], out: Path | None = None) -
         return RowState(CARRY, f"converged at B' = {v.budget:,}")
     for seed in seeds:
         run = run_dir(base, row, seed)
-        if (out is None or not run_dir(out, row, seed).exists()) and \
-                v.env_steps not in saved_steps(run):
-            newest = saved_steps(run)
+        steps = saved_steps(run)
+        if (out is None or not run_dir(out, row, seed).exists()) and v.env_steps not in steps:
             return RowState(WAIT, f"not converged at {v.env_steps:,} env steps, but "
                                   f"{run / 'checkpoints'} has no checkpoint of that step "
                                   f"to train on from (newest: "
-                                  f"{f'{newest[-1]:,}' if newest else 'none'}); restore it")
+                                  f"{f'{steps[-1]:,}' if steps else 'none'}); restore it")
     return RowState(EXTEND, f"not converged at {v.env_steps:,} env steps")
 
 
