@@ -80,7 +80,7 @@ from pathlib import Path
 
 from orgnav_jax import api
 from orgnav_jax.constants import DEFAULT_SCENE_PRESET
-from orgnav_jax.errors import UserError, read_json, run_cli
+from orgnav_jax.errors import read_json, run_cli
 from orgnav_jax.plots import plot_curves
 from orgnav_jax.safe_write import write_text_atomic
 from orgnav_jax.tables import extend, table_files
@@ -93,7 +93,7 @@ from orgnav_jax.tables.spec import read_spec, table_scenes
 from orgnav_jax.tables.table import METRICS
 from orgnav_jax.tpn.config import get_tpn_config
 from orgnav_jax.training.config import add_config_arguments, get_config, overrides_from_args
-from orgnav_jax.training.run_dir import RunLock, is_run_dir, saved_steps
+from orgnav_jax.training.run_dir import RunLock, is_run_dir
 
 def done_or_none(out: Path, row: Row, seed: int) -> dict | None:
     """A row's test metrics for one seed when its results exist (checked against their
@@ -182,12 +182,7 @@ def train_row_population(row: Row, seeds: list[int], out: Path, overrides: dict,
     todo = [s for s in seeds if not results_path(out, row, s).exists()]
     if extended:
         if todo:
-            lost = [d for d in (run_dir(out, row, s) for s in seeds) if not saved_steps(d)]
-            if lost:
-                raise UserError(f"{lost[0]}: no checkpoint to train on from (the extended "
-                                f"table continues its runs); restore its checkpoints, or "
-                                f"remove the run directory to copy it again from the base "
-                                f"table")
+            extend.check_checkpoints(out, row.base, seeds)
             cfg = get_config(row.base, **{**overrides, "run_dir": str(out / "runs" / row.base)})
             summaries = api.train_seeds(cfg, seeds, resume=True, progress=sys.stderr.isatty(),
                                         until_converged=True)

@@ -22,6 +22,8 @@ import sys
 import tarfile
 from pathlib import Path
 
+from orgnav_jax.training.run_dir import saved_steps
+
 STREAMS = Path("/tmp/g")
 FILE_LIMIT, TOTAL_LIMIT, MAX_FILES = 15_900_000, 63_000_000, 8
 BIG = {"checkpoints", "best", "tb"}
@@ -29,12 +31,10 @@ BIG = {"checkpoints", "best", "tb"}
 
 def newest(run: Path, sub: str) -> list[tuple[Path, str]]:
     """[(the newest step directory of RUN/SUB, its name in the archive)], [] if none."""
-    d = run / sub
-    steps = [p for p in d.iterdir() if p.name.isdigit()] if d.is_dir() else []
+    steps = saved_steps(run, sub)
     if not steps:
         return []
-    step = max(steps, key=lambda p: int(p.name))
-    return [(step, f"runs/{run.name}/{sub}/{step.name}")]
+    return [(run / sub / str(steps[-1]), f"runs/{run.name}/{sub}/{steps[-1]}")]
 
 
 def tar_bytes(items: list[tuple[Path, str]]) -> bytes:

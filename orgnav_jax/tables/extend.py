@@ -16,6 +16,7 @@ tested) is judged by the convergence rule on its own val curves and
     states = prepare(base, out, rows, seeds)   # {row: RowState}, runs copied into OUT
     state = row_state(base, "baseline", seeds, out)  # carry | extend | wait, and why
     copy_row(base, out, "baseline", seeds, carry=False)
+    check_checkpoints(out, "baseline", seeds)  # before the copies train on
 
 BASE's files are only read. A copy is made in a temporary directory beside its target and
 renamed into place, so an interrupted copy leaves no half run; a run directory already in
@@ -28,6 +29,7 @@ import dataclasses
 import shutil
 from pathlib import Path
 
+from orgnav_jax.errors import UserError
 from orgnav_jax.tables.convergence import check_runs
 from orgnav_jax.tables.layout import existing_results, pretrain_dir, run_dir
 from orgnav_jax.tables.provenance import record_provenance
@@ -56,7 +58,7 @@ class RowState:
             WAIT: "left for a later run"}[self.action] + f" ({self.why})"
 
 
-def row_state(base: Path, row: str, seeds: list[int], out: Path | None = None) -> RowState:
+def row_state(base: Path, row: str, seeds: list[int], out: Path) -> RowState:
     """What to do with navigation row `row` (a base row, or random) of table BASE; a row
     to extend waits while a run not yet copied into OUT lacks its checkpoint at BASE's
     last evaluation (training on from step 0 would silently be another experiment)."""
@@ -77,7 +79,7 @@ def row_state(base: Path, row: str, seeds: list[int], out: Path | None = None) -
     for seed in seeds:
         run = run_dir(base, row, seed)
         steps = saved_steps(run)
-        if (out is None or not run_dir(out, row, seed).exists()) and v.env_steps not in steps:
+        if not run_dir(out, row, seed).exists() and v.env_steps not in steps:
             return RowState(WAIT, f"not converged at {v.env_steps:,} env steps, but "
                                   f"{run / 'checkpoints'} has no checkpoint of that step "
                                   f"to train on from (newest: "
@@ -108,6 +110,16 @@ def copy_row(base: Path, out: Path, row: str, seeds: list[int], carry: bool) -> 
                 " without its test results and TPN, to train on under the convergence rule"))
             copied.append(dst)
     return copied
+
+
+def check_checkpoints(out: Path, row: str, seeds: list[int]) -> None:
+    """UserError when a run of `row` copied into OUT to train on has no checkpoint (lost
+    with a new checkout): the resume would start it again from step 0."""
+    for run in (run_dir(out, row, seed) for seed in seeds):
+        if not saved_steps(run):
+            raise UserError(f"{run}: no checkpoint to train on from (the extended table "
+                            f"continues its runs); restore its checkpoints, or remove the "
+                            f"run directory to copy it again from the base table")
 
 
 def prepare(base: Path, out: Path, rows: list[str], seeds: list[int]) -> dict[str, RowState]:

@@ -207,15 +207,22 @@ def _duration(seconds: float) -> str:
 ESTIMATE_AFTER = 3     # chunks of this process before the wall-time estimate (1: compile)
 
 
+def _together(members: int) -> str:
+    return f" ({members} runs together)" if members > 1 else ""
+
+
+def _capped(capped: bool) -> str:
+    return "; the budget is a cap, the convergence rule may stop it sooner" if capped else ""
+
+
 def wall_time_estimate(stage: Stage, chunk: int, seconds: list[float], members: int,
                        timed_steps: float | None = None, steps: int | None = None,
                        capped: bool = False) -> str:
     """The one-line estimate from the chunks timed after the compile chunk (with
     stage.steps_key: timed_steps, the steps they took, and steps, the run's so far);
     capped: a stop rule may end the stage before its budget, which is then a cap."""
-    cap = "; the budget is a cap, the convergence rule may stop it sooner" if capped else ""
+    who, cap = _together(members), _capped(capped)
     per_chunk = float(np.mean(seconds))
-    who = f" ({members} runs together)" if members > 1 else ""
     where = f"over chunks {chunk - len(seconds) + 1}-{chunk} (compile excluded)"
     if stage.steps_key is not None:
         rate = timed_steps / float(np.sum(seconds))
@@ -238,12 +245,11 @@ def cycle_estimate(stage: Stage, marks: list[tuple[int, float]], members: int,
     marks taken after consecutive val evaluations (the first one's compile excluded)."""
     (c0, t0), (c1, t1) = marks
     per_chunk = (t1 - t0) / (c1 - c0)
-    who = f" ({members} runs together)" if members > 1 else ""
-    cap = "; the budget is a cap, the convergence rule may stop it sooner" if capped else ""
     return (f"{stage.name}: {stage.per_chunk * members / per_chunk:,.0f} {stage.unit}s/s"
-            f"{who} with evaluations and checkpoints, over chunks {c0 + 1}-{c1}: the "
-            f"remaining {stage.num_chunks - c1} of {stage.num_chunks} chunks take about "
-            f"{_duration((stage.num_chunks - c1) * per_chunk)}{cap}")
+            f"{_together(members)} with evaluations and checkpoints, over chunks "
+            f"{c0 + 1}-{c1}: the remaining {stage.num_chunks - c1} of {stage.num_chunks} "
+            f"chunks take about {_duration((stage.num_chunks - c1) * per_chunk)}"
+            f"{_capped(capped)}")
 
 
 def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path],
@@ -270,13 +276,14 @@ def run_population(stage: Stage, runners: list, cfgs: list, run_dirs: list[Path]
     chunk, steps, runners = (_restore(members, runners, stacked, stage) if resume
                              else (0, 0, runners))
     first_chunk = chunk
-    for m, records in zip(members, logged):
-        if resume and not steps and records and primary:   # say so: its log is dropped
-            print(f"{stage.name}: resume: no checkpoint in {m.run_dir / 'checkpoints'}; "
-                  f"training starts again from step 0 (its metrics.jsonl's "
-                  f"{len(records)} records, to {stage.step_name} "
-                  f"{max(r[stage.step_name] for r in records):,}, are dropped)",
-                  file=sys.stderr, flush=True)
+    if resume and not steps and primary:        # no checkpoint: say so, its log is dropped
+        for m, records in zip(members, logged):
+            if records:
+                print(f"{stage.name}: resume: no checkpoint in {m.run_dir / 'checkpoints'}; "
+                      f"training starts again from step 0 (its metrics.jsonl's "
+                      f"{len(records)} records, to {stage.step_name} "
+                      f"{max(r[stage.step_name] for r in records):,}, are dropped)",
+                      file=sys.stderr, flush=True)
     # each run's val records up to the resumed step (the stop rule's history)
     history = [[r for r in records if r["kind"] == "val" and r[stage.step_name] <= steps]
                for records in logged]

@@ -117,12 +117,13 @@ def is_run_dir(path: str | os.PathLike) -> bool:
     return isinstance(doc, dict) and "version" in doc
 
 
-def saved_steps(run_dir: str | os.PathLike) -> list[int]:
-    """The steps of a run's latest-N checkpoints (checkpoints/<step>/, read from the
-    directory names: no jax, nothing created), ascending; [] when there are none. A save
-    still in progress or killed (orbax's `<step>.orbax-checkpoint-tmp-*`) is not one."""
+def saved_steps(run_dir: str | os.PathLike, sub: str = "checkpoints") -> list[int]:
+    """The steps of a run's latest-N checkpoints (RUN/checkpoints/<step>/; sub="best":
+    the best-on-val one), read from the directory names (no jax, nothing created),
+    ascending; [] when there are none. A save still in progress or killed (orbax's
+    `<step>.orbax-checkpoint-tmp-*`) is not one."""
     try:
-        names = [p.name for p in (Path(run_dir) / "checkpoints").iterdir() if p.is_dir()]
+        names = [p.name for p in (Path(run_dir) / sub).iterdir() if p.is_dir()]
     except OSError:
         return []
     return sorted(int(n) for n in names if n.isdigit())
