@@ -466,3 +466,18 @@ def test_evaluate_a_run_on_another_scene_preset_says_so(tmp_path, half_run, tiny
     assert result["scenes"] == "tiny" and json.loads(out.read_text())["scenes"] == "tiny"
     assert snapshot(run) == before
     cache.clear_loaded()
+
+
+def test_reading_a_run_without_checkpoints_is_one_line_and_creates_nothing(
+        tmp_path, half_run, cli_error):
+    """A run whose checkpoints are gone (a new checkout: they stay out of git): evaluating
+    it names the run, and the read makes no empty checkpoints/ or best/ folder."""
+    from orgnav_jax import evaluate
+    run = copy_of(half_run, tmp_path / "run")
+    for sub in ("checkpoints", "best"):
+        shutil.rmtree(run / sub)
+    before = snapshot(run)
+    msg = cli_error(evaluate.main, ["--checkpoint", run, "--split", "val",
+                                    "--episodes-per-room-type", "2", "--quiet"])
+    assert msg == f"error: no checkpoint in {run}", msg
+    assert snapshot(run) == before

@@ -33,7 +33,8 @@ logging.getLogger("absl").setLevel(logging.ERROR)
 
 
 def _manager(path: Path, keep: int) -> ocp.CheckpointManager:
-    options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True,
+    """create=False: a read makes no folder (a save still makes its own)."""
+    options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=False,
                                            enable_async_checkpointing=False)
     handlers = {"state": ocp.StandardCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
     return ocp.CheckpointManager(path.absolute(), options=options, item_handlers=handlers)
