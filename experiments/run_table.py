@@ -16,7 +16,9 @@ definition; it is copied to OUT/spec.json, which claims.py reads. Without --spec
 table is kept in experiments/results/before_parity/tables.)
 
 Each (row, seed) trains in OUT/runs/<row>-s<seed> (skipped when its test results exist,
-resumed when it has checkpoints: rerun the same command after an interruption), is
+resumed when it has checkpoints: rerun the same command after an interruption; Ctrl-C
+first cuts the training runs' metrics.jsonl back to their newest checkpoint, where the
+rerun continues, so a stopped table's small files can be committed as they are), is
 evaluated on the test split (best-on-val checkpoint, 250 episodes per room type), and
 the table is rewritten after every run: OUT/results.json (every run) and OUT/table.md
 (mean +- std over seeds, with the failure analysis: wrong Done, timeout, revisits and
@@ -76,6 +78,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from orgnav_jax import api
@@ -93,13 +96,31 @@ from orgnav_jax.tables.spec import read_spec, table_scenes
 from orgnav_jax.tables.table import METRICS
 from orgnav_jax.tpn.config import get_tpn_config
 from orgnav_jax.training.config import add_config_arguments, get_config, overrides_from_args
-from orgnav_jax.training.run_dir import RunLock, is_run_dir
+from orgnav_jax.training.run_dir import RunLock, drop_metrics_after, is_run_dir, saved_steps
 
 def done_or_none(out: Path, row: Row, seed: int) -> dict | None:
     """A row's test metrics for one seed when its results exist (checked against their
     per-episode outcomes), else None."""
     path = existing_results(out, row, seed)
     return None if path is None else read_results(path)[0]
+
+
+def rewound_on_interrupt(run_dirs: list[Path], train: Callable[[], object]):
+    """train() -> its value. On Ctrl-C, each run's metrics.jsonl is first cut back to the
+    run's newest checkpoint, where --resume continues (it writes the later records again),
+    so that a stopped table's files are those its resumed runs will keep; then the
+    interrupt goes on."""
+    try:
+        return train()
+    except KeyboardInterrupt:
+        for where in run_dirs:
+            steps = saved_steps(where)
+            if steps:
+                dropped = drop_metrics_after(where, steps[-1])
+                print(f"interrupted: {where}/metrics.jsonl kept to env step {steps[-1]:,}, "
+                      f"its newest checkpoint ({dropped} later records dropped)",
+                      file=sys.stderr, flush=True)
+        raise
 
 
 def run_tpn(row: Row, seed: int, out: Path, overrides: dict, tpn_fields: dict,
@@ -161,7 +182,8 @@ def run_one(row: Row, seed: int, out: Path, overrides: dict, extended: bool = Fa
         if pre and not resumed:          # once the A2C run has started, its start is fixed
             pretrain_seed(row, seed, out, overrides)
         if not extended:
-            api.train(cfg, resume=resumed, progress=sys.stderr.isatty())
+            rewound_on_interrupt([where], lambda: api.train(
+                cfg, resume=resumed, progress=sys.stderr.isatty()))
         return api.test_run(where, progress=False)["overall"]
     return work_recorded(where, work, lambda resumed: (
         "tested" if extended else f"{'resumed and finished' if resumed else 'trained'}"
@@ -184,8 +206,10 @@ def train_row_population(row: Row, seeds: list[int], out: Path, overrides: dict,
         if todo:
             extend.check_checkpoints(out, row.base, seeds)
             cfg = get_config(row.base, **{**overrides, "run_dir": str(out / "runs" / row.base)})
-            summaries = api.train_seeds(cfg, seeds, resume=True, progress=sys.stderr.isatty(),
-                                        until_converged=True)
+            summaries = rewound_on_interrupt(
+                [run_dir(out, row, s) for s in seeds],
+                lambda: api.train_seeds(cfg, seeds, resume=True, progress=sys.stderr.isatty(),
+                                        until_converged=True))
             if summaries[0]["chunks_run"]:   # not when the rule held at the checkpoint
                 for s in seeds:
                     record_provenance(run_dir(out, row, s), "trained on under the convergence "
@@ -200,7 +224,9 @@ def train_row_population(row: Row, seeds: list[int], out: Path, overrides: dict,
     if pre and not all(started):
         for s in todo:
             pretrain_seed(row, s, out, overrides)
-    summaries = api.train_seeds(cfg, todo, resume=all(started), progress=sys.stderr.isatty())
+    summaries = rewound_on_interrupt(
+        [run_dir(out, row, s) for s in todo],
+        lambda: api.train_seeds(cfg, todo, resume=all(started), progress=sys.stderr.isatty()))
     if not summaries[0]["chunks_run"]:
         return                          # a resume that found the runs trained to the end
     for s in todo:

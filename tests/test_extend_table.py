@@ -140,6 +140,40 @@ def test_an_extended_run_without_checkpoints_is_not_trained_again_from_zero(
                     f"directory to copy it again from the base table"), line
 
 
+def test_ctrl_c_leaves_each_run_s_metrics_at_its_newest_checkpoint(base, tmp_path,
+                                                                   monkeypatch, capsys):
+    """Interrupted while a row trains on: every run's metrics.jsonl is cut back to the step
+    of its newest checkpoint (what the rerun keeps), the records before it unchanged, and
+    the interrupt goes on (exit 130 from the command line)."""
+    run_table = experiment_script("run_table")
+    out = tmp_path / "ext"
+
+    def train_seeds(cfg, seeds, **kw):
+        for seed in seeds:
+            run = out / "runs" / f"il-s{seed}"
+            with (run / "metrics.jsonl").open("a") as f:
+                for i in (51, 52, 53):
+                    f.write(json.dumps({"kind": "val", "env_steps": i * STEP,
+                                        "success": 0.6}) + "\n")
+                f.write('{"kind": "tra')                    # a line cut by the interrupt
+            (run / "checkpoints" / str(52 * STEP)).mkdir()
+            (run / "checkpoints" / f"{53 * STEP}.orbax-checkpoint-tmp-7").mkdir()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(api, "train_seeds", train_seeds)
+    spec_path = tmp_path / "ext.json"
+    spec_path.write_text(json.dumps(spec_of(out, 100 * STEP, extends=str(base))))
+    assert run_table.run_cli(run_table.main, ["--spec", str(spec_path)]) == 130
+    for seed in (0, 1):
+        kept = (out / "runs" / f"il-s{seed}" / "metrics.jsonl").read_text().splitlines()
+        base_lines = (base / "runs" / f"il-s{seed}" / "metrics.jsonl").read_text().splitlines()
+        assert kept[:50] == base_lines
+        assert [json.loads(line)["env_steps"] for line in kept[50:]] == [51 * STEP, 52 * STEP]
+    err = capsys.readouterr().err
+    assert (f"interrupted: {out / 'runs' / 'il-s1'}/metrics.jsonl kept to env step "
+            f"{52 * STEP:,}, its newest checkpoint (1 later records dropped)") in err
+
+
 def test_run_table_extends_only_the_rows_not_converged(base, tmp_path, monkeypatch, capsys):
     """The base's converged rows keep their results; the one not converged trains on in
     one program under the rule (resumed, to the spec's cap) and is tested again, its TPN

@@ -321,6 +321,21 @@ def read_metrics(run_dir: str | os.PathLike, step_name: str = "env_steps",
     return out
 
 
+def drop_metrics_after(run_dir: str | os.PathLike, step: int,
+                       step_name: str = "env_steps") -> int:
+    """Cut a run's metrics.jsonl back to the records at or before `step` (what a resume
+    from the checkpoint at `step` keeps: it writes the later ones again), atomically ->
+    the number of records dropped (0 when there is no file). A line cut by a kill is
+    dropped; a malformed record is an error (read_metrics)."""
+    path = Path(run_dir) / METRICS_FILE
+    if not path.exists():
+        return 0
+    records = read_metrics(run_dir, step_name, skip_broken=True)
+    keep = [rec for rec in records if rec[step_name] <= step]
+    write_text_atomic(path, "".join(json.dumps(rec) + "\n" for rec in keep))
+    return len(records) - len(keep)
+
+
 class MetricsLog:
     """Appends one JSON object per record to metrics.jsonl and, if tensorboardX is
     installed, the same scalars to TensorBoard event files under tb/.
@@ -332,7 +347,7 @@ class MetricsLog:
                  resume_from: int | None = None):
         self.path, self.step_name = Path(run_dir) / METRICS_FILE, step_name
         if resume_from is not None:
-            self._drop_after(resume_from)
+            drop_metrics_after(run_dir, resume_from, step_name)
         try:
             # tensorboardX on first use (~0.7 s): run directories are read where no run
             # is logged (api, the tables, the command lines' --help)
@@ -341,15 +356,6 @@ class MetricsLog:
             self.tb = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=purge)
         except ImportError:  # logs stay readable as JSONL
             self.tb = None
-
-    def _drop_after(self, step: int) -> None:
-        if not self.path.exists():
-            return
-        # a line cut by a kill is dropped; a malformed record is an error (read_metrics,
-        # also called before anything of a resume is written: training/driver.py)
-        keep = [rec for rec in read_metrics(self.path.parent, self.step_name, True)
-                if rec[self.step_name] <= step]
-        write_text_atomic(self.path, "".join(json.dumps(rec) + "\n" for rec in keep))
 
     def write(self, kind: str, step: int, values: dict) -> None:
         with self.path.open("a") as f:
