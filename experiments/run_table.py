@@ -108,8 +108,9 @@ def done_or_none(out: Path, row: Row, seed: int) -> dict | None:
 def rewound_on_interrupt(run_dirs: list[Path], train: Callable[[], object]):
     """train() -> its value. On Ctrl-C, each run's metrics.jsonl is first cut back to the
     run's newest checkpoint, where --resume continues (it writes the later records again),
-    so that a stopped table's files are those its resumed runs will keep; then the
-    interrupt goes on."""
+    so that a stopped table's files are those its resumed runs will keep, and the run's
+    provenance records this process's part (the code and machine that trained it to that
+    checkpoint); then the interrupt goes on."""
     try:
         return train()
     except KeyboardInterrupt:
@@ -117,6 +118,7 @@ def rewound_on_interrupt(run_dirs: list[Path], train: Callable[[], object]):
             steps = saved_steps(where)
             if steps:
                 dropped = drop_metrics_after(where, steps[-1])
+                record_provenance(where, f"trained to env step {steps[-1]:,}, interrupted")
                 print(f"interrupted: {where}/metrics.jsonl kept to env step {steps[-1]:,}, "
                       f"its newest checkpoint ({dropped} later records dropped)",
                       file=sys.stderr, flush=True)

@@ -169,6 +169,8 @@ def test_ctrl_c_leaves_each_run_s_metrics_at_its_newest_checkpoint(base, tmp_pat
         base_lines = (base / "runs" / f"il-s{seed}" / "metrics.jsonl").read_text().splitlines()
         assert kept[:50] == base_lines
         assert [json.loads(line)["env_steps"] for line in kept[50:]] == [51 * STEP, 52 * STEP]
+        records = json.loads((out / "runs" / f"il-s{seed}" / "provenance.json").read_text())
+        assert records[-1]["did"] == f"trained to env step {52 * STEP:,}, interrupted"
     err = capsys.readouterr().err
     assert (f"interrupted: {out / 'runs' / 'il-s1'}/metrics.jsonl kept to env step "
             f"{52 * STEP:,}, its newest checkpoint (1 later records dropped)") in err
